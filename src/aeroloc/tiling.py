@@ -27,6 +27,7 @@ from aeroloc.maps import Map, open_map
 DEFAULT_BASE_PX = 256
 TILES_CSV = "tiles.csv"
 TILES_JSON = "tiles.json"
+BUILDING_JSON = "building.json"  # the configuration whose images/ are being rendered (absent once complete)
 CSV_COLUMNS = ["tile", "path", "tl_lat", "tl_lon", "br_lat", "br_lon", "width", "height", "col", "row",
                "crs", "a", "b", "c", "d", "e", "f"]
 
@@ -116,12 +117,17 @@ class TileGrid:
         for i, r in enumerate(self.rows):
             for j, c in enumerate(self.cols):
                 yield Tile(id=f"r{i:03d}c{j:03d}", col=c, row=r, width=self.side, height=self.side,
-                           transform=t * Affine.translation(c, r), crs=self.map.crs,
+                           transform=_shifted(t, c, r), crs=self.map.crs,
                            path=f"images/r{i:03d}c{j:03d}.png")
 
     def params(self) -> dict:
         return {"zoom": self.zoom, "overlap": self.overlap, "tile_m": self.tile_m, "base_px": self.base_px,
                 "side_px": self.side, "step_px": self.step, "n_rows": len(self.rows), "n_cols": len(self.cols)}
+
+
+def _shifted(t: Affine, col: int, row: int) -> Affine:
+    """``t`` composed with a translation by (col, row) pixels (spelled out: affine 3 deprecates ``*``)."""
+    return Affine(t.a, t.b, t.a * col + t.b * row + t.c, t.d, t.e, t.d * col + t.e * row + t.f)
 
 
 # --- on-disk tile database ---------------------------------------------------------------------------------
@@ -152,9 +158,11 @@ def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=
     done = _existing(out, info)
     if done is not None:
         return done
+    _discard_other_partial_build(out, info)
     (out / "images").mkdir(parents=True, exist_ok=True)
     for stale in (out / TILES_CSV, out / TILES_JSON):
         stale.unlink(missing_ok=True)
+    (out / BUILDING_JSON).write_text(json.dumps(_build_key(info)))
     t0 = time.perf_counter()
     rows, nbytes = [], 0
     for tile in tqdm(list(grid), desc="tiles", unit="tile", disable=not progress, leave=False):
@@ -172,7 +180,24 @@ def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=
     info.update(build_s=round(time.perf_counter() - t0, 3), image_bytes=nbytes)
     (out / TILES_JSON).write_text(json.dumps(info, indent=1))
     os.replace(tmp, out / TILES_CSV)
+    (out / BUILDING_JSON).unlink(missing_ok=True)
     return info
+
+
+def _build_key(info: dict) -> dict:
+    return {"grid": info["grid"], "map_path": info["map"]["path"], "transform": info["map"]["transform"]}
+
+
+def _discard_other_partial_build(out: Path, info: dict) -> None:
+    """Images left by an interrupted build are reused only when it was building this same configuration."""
+    if not (out / "images").is_dir():
+        return
+    try:
+        same = json.loads((out / BUILDING_JSON).read_text()) == json.loads(json.dumps(_build_key(info)))
+    except (OSError, json.JSONDecodeError):
+        same = False
+    if not same:
+        shutil.rmtree(out / "images")
 
 
 def _existing(out: Path, info: dict) -> dict | None:

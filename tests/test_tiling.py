@@ -1,0 +1,238 @@
+"""tiling.py invariants over a grid of zooms x overlaps, on the real NAIP GeoTIFF and on a seed-format tile
+folder built from real pixels: full coverage, overlap step, edge snapping, tile count formula, exact corners;
+and the on-disk database: images equal the map, resume, cache hit, interrupted builds are completed."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from _mapfolders import build_seed_folder
+from aeroloc import tiling
+from aeroloc.errors import AerolocError
+from aeroloc.maps import open_map
+from aeroloc.tiling import TileGrid, load_info, load_tiles, tile_count, write_tiles
+
+ZOOMS = [0.5, 1, 1.5, 2, 3]
+OVERLAPS = [0, 0.25, 0.5, 0.75]
+
+
+@pytest.fixture(scope="module")
+def naip(naip_map):
+    return open_map(naip_map)
+
+
+@pytest.fixture(scope="module")
+def seed(tmp_path_factory, naip_map):
+    s = build_seed_folder(tmp_path_factory.mktemp("seed") / "seed", naip_map)
+    return s, open_map(s.path)
+
+
+def _check_axis(starts, length, side, step):
+    assert starts[0] == 0
+    assert starts[-1] + side == length  # snapped to the edge, never past it
+    diffs = np.diff(starts)
+    assert (diffs[:-1] == step).all() if len(diffs) > 1 else True
+    if len(diffs):
+        assert 0 < diffs[-1] <= step  # the snapped last one is the only shorter step
+    assert len(starts) == 1 + math.ceil((length - side) / step)  # the count formula, independently
+    assert len(starts) == tile_count(length, side, step)
+
+
+def _check_grid(m, zoom, overlap, base):
+    g = TileGrid(m, zoom, overlap)
+    side = round(base / zoom)
+    step = round(side * (1 - overlap))
+    assert (g.side, g.step) == (side, step)
+    _check_axis(g.cols, m.width, side, step)
+    _check_axis(g.rows, m.height, side, step)
+    tiles = list(g)
+    assert len(tiles) == len(g) == tile_count(m.width, side, step) * tile_count(m.height, side, step)
+    assert len({t.id for t in tiles}) == len(tiles)
+    covered = np.zeros((m.height, m.width), np.int32)
+    for t in tiles:
+        assert (t.width, t.height) == (side, side)
+        assert t.col + side <= m.width and t.row + side <= m.height
+        covered[t.row:t.row + side, t.col:t.col + side] += 1
+    assert covered.min() >= 1  # every map pixel is covered
+    # corner coordinates are the map's pixel edges (vectorised reference through the map's georeference)
+    cols = np.array([t.col for t in tiles], float)
+    rows = np.array([t.row for t in tiles], float)
+    tl_lat, tl_lon = m.pixel_to_latlon(cols, rows)
+    br_lat, br_lon = m.pixel_to_latlon(cols + side, rows + side)
+    got = np.array([[*t.corners_latlon[0], *t.corners_latlon[1]] for t in tiles])
+    np.testing.assert_allclose(got, np.stack([tl_lat, tl_lon, br_lat, br_lon], 1), atol=1e-11, rtol=0)
+    # outer edges: the first tile starts at the map corner, the last ends at the opposite one
+    lat, lon = m.pixel_to_latlon([0, m.width], [0, m.height])
+    assert got[0, :2] == pytest.approx([lat[0], lon[0]], abs=1e-12)
+    assert got[-1, 2:] == pytest.approx([lat[1], lon[1]], abs=1e-12)
+    return g, tiles
+
+
+@pytest.mark.parametrize("zoom", ZOOMS)
+@pytest.mark.parametrize("overlap", OVERLAPS)
+def test_grid_invariants_on_naip(naip, zoom, overlap):
+    _check_grid(naip, zoom, overlap, tiling.DEFAULT_BASE_PX)
+
+
+@pytest.mark.parametrize("zoom", ZOOMS)
+@pytest.mark.parametrize("overlap", OVERLAPS)
+def test_grid_invariants_on_seed_folder(seed, zoom, overlap):
+    s, m = seed
+    assert m.base_tile_px == 64
+    g, tiles = _check_grid(m, zoom, overlap, 64)
+    if zoom == 1 and overlap == 0:  # zoom 1 without overlap is exactly the raw tiles (64 wide, 48 high: the
+        # square tiles are 64 px, so rows snap); the first tile's corners are the metadata's first row
+        assert tiles[0].corners_latlon[0] == pytest.approx(s.corners[(0, 0)][:2], abs=1e-10)
+        assert g.cols == [0, 64, 128, 192]
+
+
+def test_point_just_outside_a_tile_is_outside(naip):
+    g = TileGrid(naip, 1.5, 0.5)
+    t = list(g)[len(g) // 2]
+    # map pixels a hair outside each edge of the tile
+    probes = [(t.col - 0.01, t.row + 5), (t.col + t.width + 0.01, t.row + 5),
+              (t.col + 5, t.row - 0.01), (t.col + 5, t.row + t.height + 0.01)]
+    for c, r in probes:
+        lat, lon = naip.pixel_to_latlon(c, r)
+        x, y = t.latlon_to_pixel(lat, lon)
+        assert float(x) == pytest.approx(c - t.col, abs=1e-6) and float(y) == pytest.approx(r - t.row, abs=1e-6)
+        assert not (0 <= x <= t.width and 0 <= y <= t.height)
+    lat, lon = t.centre_latlon
+    assert naip.latlon_to_pixel(lat, lon) == pytest.approx((t.col + t.width / 2, t.row + t.height / 2), abs=1e-6)
+
+
+def test_tile_m_sets_the_base_in_metres(naip):
+    g = TileGrid(naip, 1, 0, tile_m=1000)
+    assert g.side == round(1000 / naip.resolution_m) == 200
+    g2 = TileGrid(naip, 2, 0, tile_m=1000)
+    assert g2.side == 100
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"zoom": 0}, "zoom"), ({"zoom": -1}, "zoom"), ({"zoom": float("nan")}, "zoom"),
+    ({"overlap": -0.1}, "overlap"), ({"overlap": 1.0}, "overlap"), ({"overlap": 1.5}, "overlap"),
+    ({"zoom": 0.25}, "larger than"),  # 1024 px tiles on a 934x723 map
+    ({"tile_m": 0}, "tile-m"), ({"tile_m": 5000}, "larger than"),
+])
+def test_bad_grid_parameters(naip, kwargs, match):
+    with pytest.raises(AerolocError, match=match):
+        TileGrid(naip, **{"zoom": 1, "overlap": 0, **kwargs})
+
+
+def test_tile_larger_than_seed_map(seed):
+    _, m = seed
+    with pytest.raises(AerolocError, match="larger than"):
+        TileGrid(m, 0.4, 0)  # 160 px tiles on a 256x144 mosaic
+
+
+# --- on-disk database --------------------------------------------------------------------------------------
+def _read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _assert_database_matches_map(out, m, zoom, overlap):
+    rows = _read_csv(out / "tiles.csv")
+    for col in ["tile", "path", "tl_lat", "tl_lon", "br_lat", "br_lon", "width", "height", "crs", "a", "f"]:
+        assert col in rows[0]
+    g = TileGrid(m, zoom, overlap)
+    assert len(rows) == len(g)
+    for row, t in zip(rows, g):
+        assert row["tile"] == t.id and not row["path"].startswith("/")
+        img = np.asarray(Image.open(out / row["path"]).convert("RGB"))
+        ref, _ = m.read(t.col, t.row, t.width, t.height)
+        np.testing.assert_array_equal(img, ref)
+        (tl_lat, tl_lon), (br_lat, br_lon) = t.corners_latlon
+        assert [float(row[k]) for k in ("tl_lat", "tl_lon", "br_lat", "br_lon")] == \
+            pytest.approx([tl_lat, tl_lon, br_lat, br_lon], abs=1e-9)
+    loaded = load_tiles(out)
+    for a, b in zip(loaded, g):
+        assert (a.id, a.col, a.row, a.width, a.height, a.crs) == (b.id, b.col, b.row, b.width, b.height, b.crs)
+        assert a.transform.almost_equals(b.transform, precision=1e-9)
+    return rows
+
+
+def test_write_tiles_renders_the_map_and_caches(tmp_path, seed):
+    s, m = seed
+    out = tmp_path / "db"
+    info = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
+    assert not info.get("cached") and info["n_tiles"] == len(TileGrid(m, 1.5, 0.5))
+    _assert_database_matches_map(out, m, 1.5, 0.5)
+    assert load_info(out)["grid"]["side_px"] == 43
+    mtimes = {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
+    again = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
+    assert again["cached"] is True
+    assert {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == mtimes
+    # another configuration in the same folder replaces the database instead of mixing them
+    write_tiles(s.path, out, zoom=2, overlap=0, progress=False)
+    _assert_database_matches_map(out, m, 2, 0)
+    assert len(list((out / "images").iterdir())) == len(TileGrid(m, 2, 0))
+
+
+def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch):
+    import aeroloc.images
+
+    s, m = seed
+    out = tmp_path / "db"
+    real_write, calls = aeroloc.images.write_image, []
+
+    def crash_after_five(path, image, **kw):
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        calls.append(path)
+        real_write(path, image, **kw)
+
+    monkeypatch.setattr(aeroloc.images, "write_image", crash_after_five)
+    with pytest.raises(KeyboardInterrupt):
+        write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
+    monkeypatch.setattr(aeroloc.images, "write_image", real_write)
+    assert not (out / "tiles.csv").exists()  # nothing looks complete
+    assert len(list((out / "images").glob("*.png"))) == 5
+    assert not list(out.rglob("*.part"))
+    with pytest.raises(AerolocError, match="tiles.csv"):
+        load_tiles(out)
+    kept = {p: p.stat().st_mtime_ns for p in (out / "images").glob("*.png")}
+    info = write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
+    assert not info.get("cached")
+    _assert_database_matches_map(out, m, 1, 0.5)
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items())  # resumed: finished tiles were kept
+
+
+def test_interrupted_build_then_other_parameters(tmp_path, seed, monkeypatch):
+    """Images left by an interrupted build of another configuration must not be reused as this one's."""
+    import aeroloc.images
+
+    s, m = seed
+    out = tmp_path / "db"
+    real_write, calls = aeroloc.images.write_image, []
+
+    def crash_after_five(path, image, **kw):
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        calls.append(path)
+        real_write(path, image, **kw)
+
+    monkeypatch.setattr(aeroloc.images, "write_image", crash_after_five)
+    with pytest.raises(KeyboardInterrupt):
+        write_tiles(s.path, out, zoom=1, overlap=0, progress=False)
+    monkeypatch.setattr(aeroloc.images, "write_image", real_write)
+    write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)  # same tile size, other windows
+    _assert_database_matches_map(out, m, 1, 0.5)
+    write_tiles(s.path, out, zoom=2, overlap=0.5, progress=False)
+    _assert_database_matches_map(out, m, 2, 0.5)
+
+
+def test_write_tiles_on_naip(tmp_path, naip_map, naip):
+    # zoom 2 -> 128 px tiles; overlap 0.25 -> step 96: 1 + ceil((934-128)/96) = 10 columns,
+    # 1 + ceil((723-128)/96) = 8 rows, the last ones snapped to start at 934-128 = 806 and 723-128 = 595.
+    out = tmp_path / "naip"
+    info = write_tiles(naip_map, out, zoom=2, overlap=0.25, progress=False)
+    assert info["n_tiles"] == 80 and (info["grid"]["n_cols"], info["grid"]["n_rows"]) == (10, 8)
+    rows = _assert_database_matches_map(out, naip, 2, 0.25)
+    assert (int(rows[-1]["col"]), int(rows[-1]["row"])) == (806, 595)
+    assert rows[0]["crs"] == "EPSG:26914"

@@ -101,7 +101,7 @@ def resolve_weights(src: WeightSource, explicit: str | os.PathLike | None = None
     hint = f" ({src.note})" if src.note else ""
     why = f" The download failed ({error})." if error else ""
     raise WeightsNotFound(
-        f"weights '{src.filename}' not found.{why} {where.capitalize()}{hint} and put it at {cached} "
+        f"weights '{src.filename}' not found.{why} {where[0].upper() + where[1:]}{hint} and put it at {cached} "
         f"(or in the folder named by $AEROLOC_WEIGHTS_DIR, or pass --weights PATH)."
     )
 

@@ -67,11 +67,11 @@ class GlobalModel(torch.nn.Module):
         raise NotImplementedError
 
 
-def resize_normalize(image: np.ndarray, size=None, multiple: int | None = None) -> torch.Tensor:
-    """Resize an RGB uint8 image (bilinear, antialiased) and apply ImageNet mean/std.
+def resize_normalize(image: np.ndarray, size=None, multiple: int | None = None, mode: str = "bilinear") -> torch.Tensor:
+    """Resize an RGB uint8 image (antialiased) and apply ImageNet mean/std.
 
     size: None (keep), an int (square side) or (h, w). multiple: round each side down to a multiple
-    (ViTs with patch 14 need it).
+    (ViTs with patch 14 need it). mode: 'bilinear' or 'bicubic' (what the authors' transform used).
     """
     t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float().div_(255.0)
     h, w = t.shape[1:]
@@ -80,7 +80,8 @@ def resize_normalize(image: np.ndarray, size=None, multiple: int | None = None) 
     if multiple:
         h, w = max(multiple, h // multiple * multiple), max(multiple, w // multiple * multiple)
     if (h, w) != tuple(t.shape[1:]):
-        t = F.interpolate(t[None], size=(h, w), mode="bilinear", align_corners=False, antialias=True)[0]
+        t = F.interpolate(t[None], size=(h, w), mode=mode, align_corners=False, antialias=True)[0]
+        t = t.clamp_(0.0, 1.0)  # bicubic overshoots; PIL (the authors' resize) clips to the pixel range
     mean = torch.tensor(IMAGENET_MEAN).view(3, 1, 1)
     std = torch.tensor(IMAGENET_STD).view(3, 1, 1)
     return (t - mean) / std

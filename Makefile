@@ -7,6 +7,10 @@ PYTEST_ARGS ?= -n 2 -q
 .PHONY: setup demo test bench clean
 
 $(STAMP): pyproject.toml
+	@# headless Chromium renders the HTML benchmark report in its test (Debian package; root on CI machines)
+	command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || \
+	  echo "note: chromium not installed; the report's browser test will be skipped"; }
 	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
 	$(VENV)/bin/pip install -q --upgrade pip
 	$(VENV)/bin/pip install -q -e '.[test]'

@@ -36,3 +36,13 @@ def toledo_map(data_dir) -> Path:
 @pytest.fixture(scope="session")
 def toledo_queries(data_dir) -> Path:
     return data_dir / "toledo" / "queries.csv"
+
+
+def pytest_configure(config):
+    """Tests run two processes on two cores (pytest -n 2): one torch thread each avoids oversubscription."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass

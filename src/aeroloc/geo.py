@@ -134,8 +134,8 @@ def geodesic_distance(lat1, lon1, lat2, lon2):
 
 def offset_latlon(lat, lon, east_m, north_m):
     """Move a point by (east, north) metres along geodesics (for margins and synthetic tests)."""
-    lat, lon = np.asarray(lat, float), np.asarray(lon, float)
+    lat, lon, east_m, north_m = np.broadcast_arrays(*(np.asarray(v, float) for v in (lat, lon, east_m, north_m)))
     dist = np.hypot(east_m, north_m)
     az = np.degrees(np.arctan2(east_m, north_m))
     lon2, lat2, _ = _GEOD.fwd(lon, lat, az, dist)
-    return lat2, lon2
+    return np.asarray(lat2), np.asarray(lon2)

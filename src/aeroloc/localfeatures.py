@@ -76,7 +76,11 @@ def to_original(f: dict) -> np.ndarray:
 
 
 def local_key(db, name: str, conf: dict) -> str:
-    return config_key(name, conf, db.tiles_hash())
+    """Hash of the pipeline conf, the extractor/matcher conf it names and the tile set."""
+    from aeroloc.models.local import reranker_conf
+    from aeroloc.rerank import feature_overrides
+
+    return config_key(name, conf, reranker_conf(conf["features"], feature_overrides(conf)), db.tiles_hash())
 
 
 def store_for(db, name: str, conf: dict) -> FeatureStore:
@@ -89,7 +93,7 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     """Precompute the local features of every tile for re-ranker ``name`` (resumable: done tiles are kept)."""
     from tqdm import tqdm
 
-    from aeroloc.rerank import rerank_conf
+    from aeroloc.rerank import feature_overrides, rerank_conf
     from aeroloc.models.local import build_reranker
 
     rconf = rerank_conf(name, conf)
@@ -99,7 +103,7 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     if not todo:
         return {"n_tiles": len(db.tiles), "cached": True, "bytes_per_tile": store.bytes_per_item(),
                 "path": str(store.path)}
-    extractor, _ = build_reranker(rconf["features"], device)
+    extractor, _ = build_reranker(rconf["features"], device, feature_overrides(rconf))
     t0 = time.perf_counter()
     batch = {}
     for t in tqdm(todo, desc=f"local features {name}", unit="tile", disable=not progress, leave=False):

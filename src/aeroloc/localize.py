@@ -72,9 +72,9 @@ class Localizer:
         out.times_ms.update(rr.times_ms)
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
-        out.best, out.inliers = best, best.inliers
+        out.best, out.inliers = best, best.score
         t0 = time.perf_counter()
-        a = align(best.H, best.inliers, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
+        a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
                   self.map_size, self.reranker.conf["min_inliers"])
         out.times_ms["align"] = (time.perf_counter() - t0) * 1000
         out.lat, out.lon, out.status = a.lat, a.lon, a.status
@@ -94,8 +94,17 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     part = out_csv.with_name(out_csv.name + ".part")
     sig_path = out_csv.with_name(out_csv.name + ".config")
+    from aeroloc.rerank import rerank_conf as full_conf
+
     sig = _config_signature(db=str(db.folder.resolve()), top_n=top_n, top_k=top_k, method=method, rerank=rerank,
-                            rerank_conf=rerank_conf, queries=[q.name for q in queries])
+                            rerank_conf=full_conf(rerank, rerank_conf) if rerank else None,
+                            global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
+                            queries=[q.name for q in queries])
+    done_sig = out_csv.with_name(out_csv.name + ".done")
+    if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
+        with open(out_csv, newline="") as f:
+            return list(csv.DictReader(f))  # same configuration finished before: cached
+    done_sig.unlink(missing_ok=True)
     rows = []
     if part.is_file() and sig_path.is_file() and sig_path.read_text() == sig:
         with open(part, newline="") as f:
@@ -124,6 +133,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
             f.flush()
             rows.append(row)
     os.replace(part, out_csv)
+    done_sig.write_text(sig)
     sig_path.unlink(missing_ok=True)
     return rows
 
@@ -148,6 +158,6 @@ def save_match_image(path: Path, image: np.ndarray, db: Database, res: Localizat
             p0 = (int(x0 * sq), int(y0 * sq))
             p1 = (int(x1 * st) + a.shape[1], int(y1 * st))
             cv2.line(canvas, p0, p1, (0, 200, 0) if ok else (200, 0, 0), 1, cv2.LINE_AA)
-    label = f"{res.name}: {res.status}, {c.inliers} inliers, tile {c.tile_id}"
+    label = f"{res.name}: {res.status}, {c.score} inliers, tile {c.tile_id}"
     cv2.putText(canvas, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 0), 2, cv2.LINE_AA)
     write_image(path, canvas, quality=85)

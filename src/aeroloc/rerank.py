@@ -1,10 +1,18 @@
 """Re-ranking: score each retrieved candidate by geometrically verified inliers, best K out.
 
-The straightforward loop (dense matcher on every candidate x rotation) costs ~150 ms a pair, so the default is
-two-stage: a cheap mutual-nearest-neighbour count on the stored descriptors ranks every (candidate, query
-rotation) pair, the matcher + homography verification then runs on the ``max_verify`` most promising pairs in
-that order, and stops early once a candidate is clearly verified. Candidates that were not verified keep their
-prefilter order behind the verified ones. Ties keep the retrieval order (stable sort).
+The straightforward loop (a learned matcher on every candidate x query rotation) costs ~150 ms+ a pair, so
+re-ranking runs in two stages on features that are extracted once per query and stored per tile:
+
+1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
+   every visited candidate a verified inlier count in a few ms. Query rotations (multiples of 90°, for photos
+   taken at any heading) are all tried on the first ``rotation_probe`` candidates only; the best rotation is
+   then used for the rest. Candidates are visited in retrieval order and the screen stops early once one
+   reaches ``early_exit`` inliers (the rest keep their retrieval order behind it).
+2. **verify**: the re-ranker's own matcher (e.g. LighterGlue) re-matches the ``max_verify`` best screened
+   candidates; its verified inliers decide their final order and give the homography used for alignment.
+
+Ordering: matcher-verified candidates by inliers, then screened ones by screen inliers, then the unvisited
+in retrieval order; ties keep the retrieval order (stable).
 """
 
 from __future__ import annotations
@@ -22,22 +30,25 @@ DEFAULTS = {
     "query_side": 512,  # working resolution (longer side) of the query and of tiles, see localfeatures
     "tile_side": 512,
     "rotations": [0, 1, 2, 3],  # query rotations tried, in multiples of 90° CCW
-    "prefilter": "mnn",  # "mnn" or "none" (verify every pair)
-    "max_verify": 4,  # pairs verified by the matcher after the prefilter
-    "early_exit": 120,  # stop verifying once a candidate reaches this many inliers
+    "rotation_probe": 3,  # candidates on which every rotation is tried
+    "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
+    "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
+    "early_exit": 60,  # screen inliers that end the screen
+    "max_verify": 2,  # candidates re-matched by the re-ranker's matcher (0 = screen only)
     "min_inliers": 35,  # below this the query is "not localized"
     "ransac_px": 4.0,  # MAGSAC threshold in working-resolution pixels
-    "mnn_min_sim": 0.0,
+    "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see models.local.registry
+    "matcher": {},  # overrides of the matcher conf
 }
 RERANKERS = {
     "xfeat-lighterglue": {"features": "xfeat-lighterglue"},
-    "xfeat-mnn": {"features": "xfeat-mnn", "prefilter": "none", "min_inliers": 25},
+    "xfeat-mnn": {"features": "xfeat-mnn", "max_verify": 0, "min_inliers": 25},
     "aliked-lightglue": {"features": "aliked-lightglue"},
     "disk-lightglue": {"features": "disk-lightglue"},
-    "sift": {"features": "sift", "prefilter": "none", "min_inliers": 20},
+    "sift": {"features": "sift", "screen": False, "rotations": [0], "min_inliers": 20},
     "superpoint-lightglue": {"features": "superpoint-lightglue"},
     "superpoint-superglue": {"features": "superpoint-superglue"},
-    "selavpr": {"features": "selavpr", "prefilter": "none", "rotations": [0]},
+    "selavpr": {"features": "selavpr", "screen": False, "rotations": [0]},
 }
 DEFAULT_RERANKER = "xfeat-lighterglue"
 
@@ -52,35 +63,55 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     return conf
 
 
+def feature_overrides(conf: dict) -> dict:
+    return {"extractor": conf["extractor"], "matcher": conf["matcher"]}
+
+
 @dataclass
 class Candidate:
     tile_id: str
     retrieval_rank: int
-    prefilter: float = 0.0
-    inliers: int = 0
+    screen: int = -1  # screen inliers (-1 = not visited)
+    inliers: int = -1  # matcher inliers (-1 = not verified by the matcher)
     rot_k: int = 0
     H: np.ndarray | None = None  # query original px -> tile original px
-    verified: bool = False
     n_matches: int = 0
     matches: tuple | None = None  # (query kpts, tile kpts, inlier mask) in original frames, for visualisation
+
+    @property
+    def score(self) -> int:
+        """The matcher's verified inliers when it ran, else the screen's."""
+        return self.inliers if self.inliers >= 0 else max(self.screen, 0)
+
+    def take(self, n_inliers, H, n_matches, vis, rot_k, stage: str) -> None:
+        better = self.H is None or n_inliers > (self.screen if stage == "screen" else self.inliers)
+        if stage == "screen":
+            self.screen = max(self.screen, n_inliers)
+        else:
+            self.inliers = max(self.inliers, n_inliers)
+        if better:
+            self.H, self.n_matches, self.matches, self.rot_k = H, n_matches, vis, rot_k
 
 
 @dataclass
 class Reranked:
     candidates: list[Candidate]
     times_ms: dict = field(default_factory=dict)  # local_features, rerank
+    n_screened: int = 0
+    n_verified: int = 0
 
 
-def mnn_count(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> int:
-    """Number of mutual nearest neighbours between two descriptor sets (cosine)."""
+def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarray:
+    """(M, 2) index pairs of mutual nearest neighbours (cosine similarity above ``min_sim``)."""
     if len(d0) == 0 or len(d1) == 0:
-        return 0
+        return np.zeros((0, 2), np.int64)
     a = d0 / (np.linalg.norm(d0, axis=1, keepdims=True) + 1e-8)
     b = d1 / (np.linalg.norm(d1, axis=1, keepdims=True) + 1e-8)
     sim = a @ b.T
     nn01, nn10 = sim.argmax(1), sim.argmax(0)
-    mutual = nn10[nn01] == np.arange(len(a))
-    return int(np.sum(mutual & (sim[np.arange(len(a)), nn01] > min_sim)))
+    idx = np.arange(len(a))
+    keep = (nn10[nn01] == idx) & (sim[idx, nn01] > min_sim)
+    return np.stack([idx[keep], nn01[keep]], 1).astype(np.int64)
 
 
 class Reranker:
@@ -92,12 +123,12 @@ class Reranker:
 
         self.db, self.name = db, name
         self.conf = rerank_conf(name, conf)
-        self.extractor, self.matcher = build_reranker(self.conf["features"], device)
+        self.extractor, self.matcher = build_reranker(self.conf["features"], device, feature_overrides(self.conf))
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
 
-    def query_features(self, image: np.ndarray) -> list[dict]:
-        return [extract(self.extractor, image, self.conf["query_side"], k) for k in self.conf["rotations"]]
+    def query_features(self, image: np.ndarray) -> dict[int, dict]:
+        return {k % 4: extract(self.extractor, image, self.conf["query_side"], k) for k in self.conf["rotations"]}
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
@@ -112,17 +143,22 @@ class Reranker:
         with self.store.reader() as r:
             return {t: r.get(t) for t in tile_ids}
 
-    def verify(self, qf: dict, tf: dict):
+    def _verify(self, qf: dict, tf: dict, matches: np.ndarray):
         from aeroloc.verify import verify_homography
 
-        matches, _ = self.matcher.match(qf, tf)
         if len(matches) < 4:
             return 0, None, len(matches), None
         k0, k1 = to_original(qf), to_original(tf)
-        thr = self.conf["ransac_px"] / float(tf["scale"])
-        v = verify_homography(k0, k1, matches, threshold_px=thr)
-        m0, m1 = k0[matches[:, 0]], k1[matches[:, 1]]
-        return int(v.n_inliers), v.H, len(matches), (m0, m1, np.asarray(v.inliers, bool))
+        v = verify_homography(k0, k1, matches, threshold_px=self.conf["ransac_px"] / float(tf["scale"]))
+        vis = (k0[matches[:, 0]], k1[matches[:, 1]], np.asarray(v.inliers, bool))
+        return int(v.n_inliers), v.H, len(matches), vis
+
+    def screen_pair(self, qf, tf):
+        return self._verify(qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]))
+
+    def match_pair(self, qf, tf):
+        matches, _ = self.matcher.match(qf, tf)
+        return self._verify(qf, tf, np.asarray(matches, np.int64).reshape(-1, 2))
 
     def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
         t0 = time.perf_counter()
@@ -130,27 +166,28 @@ class Reranker:
         tfs = self.tile_features(tile_ids)
         t1 = time.perf_counter()
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
-        pairs = []  # (score, retrieval rank, rotation index)
-        for c in cands:
-            for ri, qf in enumerate(qfs):
-                s = mnn_count(qf["descriptors"], tfs[c.tile_id]["descriptors"], self.conf["mnn_min_sim"]) \
-                    if self.conf["prefilter"] == "mnn" else 0
-                pairs.append((s, c.retrieval_rank, ri))
-                c.prefilter = max(c.prefilter, s)
-        if self.conf["prefilter"] == "mnn":
-            pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
-            pairs = pairs[: self.conf["max_verify"]]
-        for _, rank, ri in pairs:
-            c = cands[rank]
-            n_in, H, n_m, vis = self.verify(qfs[ri], tfs[c.tile_id])
-            if n_in > c.inliers or not c.verified:
-                if n_in >= c.inliers:
-                    c.inliers, c.H, c.n_matches, c.matches = n_in, H, n_m, vis
-                    c.rot_k = int(qfs[ri]["rot_k"])
-            c.verified = True
-            if c.inliers >= self.conf["early_exit"]:
-                break
-        order = sorted(cands, key=lambda c: (not c.verified, -c.inliers, -c.prefilter, c.retrieval_rank))
+        rots = list(qfs)
+        n_screened = n_verified = 0
+        if self.conf["screen"]:
+            best_rot, best_rot_score = rots[0], -1
+            for c in cands:
+                probe = c.retrieval_rank < self.conf["rotation_probe"]
+                for k in (rots if probe else [best_rot]):
+                    c.take(*self.screen_pair(qfs[k], tfs[c.tile_id]), k, "screen")
+                    n_screened += 1
+                    if probe and c.screen > best_rot_score and c.rot_k == k:
+                        best_rot, best_rot_score = k, c.screen
+                if c.screen >= self.conf["early_exit"]:
+                    break
+            to_verify = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
+            to_verify = [(c, [c.rot_k]) for c in to_verify[: self.conf["max_verify"]]]
+        else:  # the straightforward loop: the matcher on every candidate x rotation
+            to_verify = [(c, rots) for c in cands]
+        for c, ks in to_verify:
+            for k in ks:
+                c.take(*self.match_pair(qfs[k], tfs[c.tile_id]), k, "verify")
+                n_verified += 1
+        order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))
         t2 = time.perf_counter()
-        return Reranked(order[: max(top_k, 1)] if top_k else order,
-                        {"local_features": (t1 - t0) * 1000, "rerank": (t2 - t1) * 1000})
+        return Reranked(order[: top_k] if top_k else order,
+                        {"local_features": (t1 - t0) * 1000, "rerank": (t2 - t1) * 1000}, n_screened, n_verified)

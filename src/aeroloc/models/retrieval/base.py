@@ -45,7 +45,9 @@ class GlobalModel(torch.nn.Module):
     def load_checkpoint(self, state: dict, source="checkpoint") -> None:
         """Strict load with a readable error (first differing keys/shapes) instead of a torch traceback."""
         own = self.state_dict()
-        missing = [k for k in own if k not in state]
+        # BatchNorm step counters are bookkeeping, absent from some published checkpoints: keep ours
+        missing = [k for k in own if k not in state and not k.endswith("num_batches_tracked")]
+        state = {**{k: v for k, v in own.items() if k.endswith("num_batches_tracked")}, **state}
         unexpected = [k for k in state if k not in own]
         wrong = [k for k in own if k in state and tuple(own[k].shape) != tuple(state[k].shape)]
         if missing or unexpected or wrong:

@@ -1,0 +1,323 @@
+"""One self-contained HTML page per benchmark run: tables, plots, a Leaflet map of ground truth vs estimates
+per query over the map imagery, and match visualisations that enlarge on click.
+
+Offline by construction: Leaflet's JS/CSS come from the ``xstatic-leaflet`` package in site-packages and are
+inlined (their icon images as data URIs); plots, the map imagery and match images are base64 data URIs. The
+map imagery is downscaled (WebP with alpha) and reprojected to Web Mercator (Leaflet's display CRS), so it sits exactly under
+the points whatever the map's own CRS; when the map file is not readable here, the tile footprints or the
+points alone are shown. The page layout, CSS and JS live in ``report_template.html`` beside this file.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+import re
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from aeroloc.errors import AerolocError
+
+TEMPLATE = Path(__file__).with_name("report_template.html")
+ERROR_COLOURS = ["#1a9850", "#91cf60", "#fee08b", "#fc8d59", "#d73027"]  # <= t1 … <= t4, beyond
+NOT_LOCALIZED_COLOUR = "#6b6b6b"
+MAX_MATCH_IMAGES = 12
+MAX_TILE_FOOTPRINTS = 5000
+
+
+# --- vendored Leaflet ---------------------------------------------------------------------------------------
+def leaflet_assets() -> tuple[str, str]:
+    """(leaflet.js, leaflet.css) from the xstatic-leaflet package, CSS images inlined as data URIs."""
+    try:
+        import xstatic.pkg.leaflet as xl
+    except ImportError:
+        raise AerolocError("the HTML report needs Leaflet from the 'xstatic-leaflet' package: "
+                           "pip install xstatic-leaflet") from None
+    base = Path(xl.BASE_DIR)
+    js = (base / "leaflet.js").read_text(encoding="utf-8")
+    js = re.sub(r"//# sourceMappingURL=\S+\s*$", "", js)
+    css = (base / "leaflet.css").read_text(encoding="utf-8")
+
+    def inline(m):
+        f = base / m.group(1)
+        if not f.is_file():
+            return "url()"
+        return f"url(data:image/png;base64,{base64.b64encode(f.read_bytes()).decode()})"
+
+    css = re.sub(r"url\((images/[^)]+)\)", inline, css)
+    return js, css
+
+
+# --- images -------------------------------------------------------------------------------------------------
+def png_data_uri(path_or_bytes) -> str:
+    data = path_or_bytes if isinstance(path_or_bytes, bytes) else Path(path_or_bytes).read_bytes()
+    return "data:image/png;base64," + base64.b64encode(data).decode()
+
+
+def jpeg_data_uri(rgb: np.ndarray, max_side: int, quality: int = 82) -> str:
+    from PIL import Image
+
+    im = Image.fromarray(rgb)
+    im.thumbnail((max_side, max_side), Image.LANCZOS)
+    buf = io.BytesIO()
+    im.convert("RGB").save(buf, "JPEG", quality=quality, optimize=True)
+    return "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def rgba_data_uri(rgba: np.ndarray) -> str:
+    """Lossy WebP with alpha (~15x smaller than PNG for aerial imagery; every current browser shows it),
+    PNG when this Pillow lacks WebP."""
+    from PIL import Image, features
+
+    buf = io.BytesIO()
+    im = Image.fromarray(rgba, "RGBA")
+    if features.check("webp"):
+        im.save(buf, "WEBP", quality=82, method=4)
+        return "data:image/webp;base64," + base64.b64encode(buf.getvalue()).decode()
+    im.save(buf, "PNG", optimize=True)
+    return png_data_uri(buf.getvalue())
+
+
+def match_image_uris(path) -> tuple[str, str] | None:
+    """(thumbnail, enlarged) data URIs of a match visualisation file, None if unreadable."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            rgb = np.asarray(im.convert("RGB"))
+    except (OSError, UnidentifiedImageError):
+        return None
+    return jpeg_data_uri(rgb, 420, 78), jpeg_data_uri(rgb, 1400, 85)
+
+
+def _downscaled(m, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """RGB averaged over the valid pixels of each factor x factor block, and the block's validity (> 1/3 valid),
+    read in strips so RAM stays bounded on large maps. The output covers ceil(size / factor) blocks: a partial
+    last block is padded with invalid pixels, so the georeference (scale = factor) stays exact."""
+    import cv2
+
+    w, h = -(-m.width // factor), -(-m.height // factor)
+    rgb = np.zeros((h, w, 3), np.uint8)
+    valid = np.zeros((h, w), bool)
+    block = max(1, 512 // factor)
+    for r0 in range(0, h, block):
+        rows = min(block, h - r0)
+        src_rows = min(rows * factor, m.height - r0 * factor)
+        strip, ok = m.read(0, r0 * factor, m.width, src_rows)
+        if factor == 1:
+            rgb[r0:r0 + rows], valid[r0:r0 + rows] = strip, ok
+            continue
+        pad = np.zeros((rows * factor, w * factor, 3), np.float32)
+        wt = np.zeros((rows * factor, w * factor), np.float32)
+        pad[:src_rows, :m.width] = strip * ok[..., None]
+        wt[:src_rows, :m.width] = ok
+        area = (w, rows)
+        s_rgb = cv2.resize(pad, area, interpolation=cv2.INTER_AREA)
+        s_wt = cv2.resize(wt, area, interpolation=cv2.INTER_AREA)
+        rgb[r0:r0 + rows] = np.clip(s_rgb / np.maximum(s_wt, 1e-6)[..., None], 0, 255).round().astype(np.uint8)
+        valid[r0:r0 + rows] = s_wt > 1 / 3
+    return rgb, valid
+
+
+def map_overlay(map_path, max_px: int = 1400) -> dict:
+    """The map as a Web Mercator RGBA PNG data URI with its lat/lon bounds, and the map outline."""
+    import rasterio.warp
+    from affine import Affine
+    from rasterio.transform import array_bounds
+
+    from aeroloc import geo
+    from aeroloc.maps import open_map
+
+    m = open_map(map_path)
+    factor = max(1, math.ceil(max(m.width, m.height) / max_px))
+    rgb, valid = _downscaled(m, factor)
+    h, w = valid.shape
+    t = m.transform
+    src_t = Affine(t.a * factor, t.b * factor, t.c, t.d * factor, t.e * factor, t.f)
+    src = np.concatenate([rgb.transpose(2, 0, 1), (valid * 255).astype(np.uint8)[None]], 0)
+    crs = m.crs if not str(m.crs).isdigit() else f"EPSG:{m.crs}"
+    west, south, east, north = array_bounds(h, w, src_t)
+    dst_t, dw, dh = rasterio.warp.calculate_default_transform(crs, "EPSG:3857", w, h, west, south, east, north)
+    dst = np.zeros((4, dh, dw), np.uint8)
+    rasterio.warp.reproject(src, dst, src_transform=src_t, src_crs=crs, dst_transform=dst_t, dst_crs="EPSG:3857",
+                            resampling=rasterio.warp.Resampling.bilinear)
+    dst[3] = np.where(dst[3] > 127, 255, 0)
+    url = rgba_data_uri(dst.transpose(1, 2, 0))
+    lat, lon = geo.latlon_from_mercator([dst_t.c, dst_t.c + dst_t.a * dw], [dst_t.f, dst_t.f + dst_t.e * dh])
+    clat, clon = m.pixel_to_latlon([0, m.width, m.width, 0], [0, 0, m.height, m.height])
+    return {"url": url,
+            "bounds": [[float(min(lat)), float(min(lon))], [float(max(lat)), float(max(lon))]],
+            "outline": [[float(a), float(b)] for a, b in zip(clat, clon)], "name": Path(map_path).name}
+
+
+def tile_footprints(db_folder) -> list[list[list[float]]] | None:
+    from aeroloc.tiling import load_tiles
+
+    try:
+        tiles = load_tiles(db_folder)
+    except (AerolocError, OSError):
+        return None
+    if len(tiles) > MAX_TILE_FOOTPRINTS:
+        return None
+    out = []
+    for t in tiles:
+        lat, lon = t.pixel_to_latlon([0, t.width, t.width, 0], [0, 0, t.height, t.height])
+        out.append([[round(float(a), 7), round(float(b), 7)] for a, b in zip(lat, lon)])
+    return out
+
+
+# --- page ---------------------------------------------------------------------------------------------------
+def _num(v):
+    return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
+
+
+def default_config(rows: list[dict], thresholds) -> dict:
+    """The configuration shown first on the map: best Georeference Recall at the tightest threshold, then the
+    lowest median error; re-ranked configurations first."""
+    t = f"georef_recall@{min(thresholds):g}m" if thresholds else None
+
+    def score(r):
+        return (r.get("reranker") is not None, r.get(t) or 0.0, -(_num(r.get("median_error_m")) or 1e18))
+
+    return max(rows, key=score)
+
+
+def sample_matches(qrows: list[dict], k: int = MAX_MATCH_IMAGES) -> list[dict]:
+    """Up to ``k`` queries with a match image: the worst and the best half each, so failures are visible."""
+    with_img = [q for q in qrows if q.get("match_image") and Path(q["match_image"]).is_file()]
+    key = lambda q: (_num(q.get("error_m")) is None, _num(q.get("error_m")) or 0.0)  # noqa: E731
+    with_img.sort(key=key)
+    if len(with_img) <= k:
+        return with_img
+    worst = with_img[len(with_img) - k // 2:]
+    best = with_img[:k - len(worst)]
+    return best + worst
+
+
+def _label(r: dict, fields) -> str:
+    from aeroloc.bench.tables import describe
+
+    return describe(r, fields)
+
+
+def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, thresholds) -> tuple[dict, str]:
+    """The map data (JSON for the page's script) and the match gallery HTML of one query set."""
+    from aeroloc.bench.tables import varying
+
+    fields = varying(rows, always=("method", "reranker"))
+    shown = default_config(rows, thresholds)
+    gallery, images = [], {}
+    for q in sample_matches(qrows_by_key.get(shown["config_key"], [])):
+        uris = match_image_uris(q["match_image"])
+        if uris is None:
+            continue
+        img_id = f"m{idx}-{len(images)}"
+        images[q["name"]] = img_id
+        err = _num(q.get("error_m"))
+        cap = f"{q['name']} — {'not localized' if err is None else f'{err:.1f} m'}, {q.get('inliers') or 0} inliers"
+        gallery.append(f"<figure class=thumb><img id={img_id} src='{uris[0]}' data-full='{uris[1]}' "
+                       f"alt='{html.escape(q['name'])}' loading=lazy><figcaption>{html.escape(cap)}</figcaption></figure>")
+    configs = []
+    for r in rows:
+        pts = []
+        for q in qrows_by_key.get(r["config_key"], []):
+            est = [q["est_lat"], q["est_lon"]] if _num(q.get("est_lat")) is not None and _num(q.get("est_lon")) is not None else None
+            pts.append({"n": q["name"], "t": [q["true_lat"], q["true_lon"]], "e": est, "err": _num(q.get("error_m")),
+                        "st": q.get("status") or "", "inl": q.get("inliers"), "rank": q.get("vpr_rank"),
+                        "img": images.get(q["name"]) if r is shown else None})
+        configs.append({"label": _label(r, fields), "key": r["config_key"], "shown": r is shown, "points": pts})
+    view = {"id": f"map{idx}", "dataset": dataset, "thresholds": list(thresholds), "configs": configs,
+            "overlay": None, "tiles": None, "colours": ERROR_COLOURS, "grey": NOT_LOCALIZED_COLOUR}
+    try:
+        view["overlay"] = map_overlay(shown["map_path"])
+    except Exception as exc:  # noqa: BLE001 - the imagery is optional: the points and tables still show
+        view["overlay_error"] = str(exc) or type(exc).__name__
+    if shown.get("db"):
+        tiles = tile_footprints(shown["db"])
+        if tiles:
+            view["tiles"] = {"label": f"tiles (zoom {shown['zoom']:g}, overlap {shown['overlap']:g})", "polys": tiles}
+    gallery_html = ""
+    if gallery:
+        gallery_html = (f"<h3>Match visualisations — {html.escape(_label(shown, fields))}</h3>"
+                        f"<p class=hint>Query (left) against the chosen tile (right); inlier matches green. "
+                        f"Click to enlarge.</p><div class=gallery>{''.join(gallery)}</div>")
+    return view, gallery_html
+
+
+def _finite(obj):
+    """JSON-safe copy: NaN/inf -> None (the page treats None as 'not localized' / 'not measured')."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _runs_html(runs: list[dict]) -> str:
+    e = html.escape
+    rows = "".join(
+        f"<tr><td class=lab>{e(r['run_id'])}</td><td class=lab>{e(str(r.get('hostname')))}</td>"
+        f"<td class=num>{r.get('cpu_count')}</td><td class=lab>{e(str(r.get('torch_version')))}</td>"
+        f"<td class=lab>{e(str(r.get('device')))}</td><td class=lab>{e(str(r.get('started_at')))}</td>"
+        f"<td class=lab>{e(str(r.get('finished_at') or '–'))}</td><td class=lab>{e(str(r.get('status')))}</td></tr>"
+        for r in runs)
+    return ("<table class=runs><thead><tr><th>run</th><th>host</th><th>CPUs</th><th>torch</th><th>device</th>"
+            f"<th>started (UTC)</th><th>finished</th><th>status</th></tr></thead><tbody>{rows}</tbody></table>")
+
+
+def write_report(path, title: str, rows: list[dict], qrows_by_key: dict[str, list[dict]], tables, plots,
+                 runs: list[dict], thresholds=(), description: str = "", files: dict | None = None) -> Path:
+    """Write the page to ``path``. ``rows``: result rows (``ResultStore.results``) of the configurations to
+    show; ``qrows_by_key``: config key -> per-query rows; ``tables``/``plots`` from tables.py/plots.py;
+    ``files``: label -> path of side files (CSV, Markdown, LaTeX) linked relatively."""
+    from aeroloc.bench.tables import by_dataset
+
+    if not rows:
+        raise AerolocError(f"{path}: no results to report")
+    e = html.escape
+    js, css = leaflet_assets()
+    sections, views, toc = [], [], []
+    for i, (dataset, rs) in enumerate(by_dataset(rows).items()):
+        view, gallery = dataset_view(i, dataset, rs, qrows_by_key, thresholds)
+        views.append(view)
+        anchor = f"ds{i}"
+        toc.append(f"<a href='#{anchor}'>{e(dataset)}</a>")
+        ts = "".join(t.html() for t in tables if getattr(t, "dataset", dataset) == dataset)
+        ps = "".join(f"<figure class=plot><img src='{png_data_uri(p.path)}' data-full='' alt='{e(p.title)}'>"
+                     f"<figcaption>{e(p.title)}</figcaption></figure>" for p in plots if p.dataset == dataset)
+        n_q = max((r.get("n_queries") or 0) for r in rs)
+        note = f"<p class=warn>map imagery unavailable: {e(view.get('overlay_error', ''))}</p>" if view.get("overlay_error") else ""
+        sections.append(
+            f"<section id={anchor}><h2>{e(dataset)}</h2>"
+            f"<p class=sub>map <code>{e(rs[0]['map'])}</code> · {n_q} queries · {len(rs)} configurations</p>"
+            f"<h3>Ground truth vs estimate</h3><p class=hint>White dots: ground truth; coloured dots: estimates, "
+            f"joined by a line, coloured by error; grey rings: not localized. Click a point for details.</p>{note}"
+            f"<label class=picker>configuration <select id=map{i}-pick></select></label>"
+            f"<div class=map id=map{i}></div>"
+            f"{gallery}<h3>Tables</h3>{ts}<h3>Plots</h3><div class=plots>{ps}</div></section>")
+    links = " · ".join(f"<a href='{e(str(p))}'>{e(k)}</a>" for k, p in (files or {}).items())
+    data = json.dumps(_finite(views), allow_nan=False, default=str).replace("</", "<\\/")
+    page = TEMPLATE.read_text(encoding="utf-8")
+    subs = {
+        "__TITLE__": e(title), "__DESCRIPTION__": e(description),
+        "__GENERATED__": e(f"{datetime.now():%Y-%m-%d %H:%M} · {len(rows)} configurations"),
+        "__TOC__": " · ".join(toc), "__FILES__": links, "__RUNS__": _runs_html(runs),
+        "__SECTIONS__": "\n".join(sections)}
+    for k, v in subs.items():
+        page = page.replace(k, v)
+    # code last: it must not be searched for placeholders
+    page = page.replace("/*__LEAFLET_CSS__*/", css).replace("/*__DATA__*/", data)
+    page = page.replace("/*__LEAFLET_JS__*/", js.replace("</script", "<\\/script"))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(path)
+    return path

@@ -1,0 +1,29 @@
+"""List the retrieval methods and re-rankers, and whether their weights are available on this machine."""
+
+from __future__ import annotations
+
+
+def add_arguments(p):
+    p.add_argument("--check", action="store_true", help="look for each method's weights (no download)")
+
+
+def run(args) -> int:
+    from aeroloc.errors import AerolocError
+    from aeroloc.models.retrieval import DEFAULT_METHOD, METHODS, method_class
+    from aeroloc.models.weights import resolve_weights
+    from aeroloc.rerank import DEFAULT_RERANKER, RERANKERS
+
+    print("retrieval methods (--method):")
+    for name in METHODS:
+        line = f"  {name}{' (default)' if name == DEFAULT_METHOD else ''}"
+        if args.check:
+            try:
+                src = getattr(method_class(name), "weight_source", None)
+                line += ": " + ("ready" if src is None else f"weights at {resolve_weights(src, download=False)}")
+            except AerolocError as exc:
+                line += f": {exc}"
+        print(line)
+    print("re-rankers (--rerank):")
+    for name, conf in RERANKERS.items():
+        print(f"  {name}{' (default)' if name == DEFAULT_RERANKER else ''}: features {conf['features']}")
+    return 0

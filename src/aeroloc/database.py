@@ -90,9 +90,14 @@ def build_global(db: Database, method: str, conf: dict | None = None, weights=No
     from aeroloc.index import build_index, save_index
     from aeroloc.models.retrieval import build_method
 
+    from aeroloc.models.retrieval import method_class
+
     conf = dict(conf or {})
     weights_id = file_identity(weights) if weights else None
-    key = config_key(method, conf, weights_id, db.tiles_hash(), index_factory)
+    # the key covers the method's full effective configuration (class defaults included), so a changed
+    # default never reuses a stale vocabulary or descriptors
+    full_conf = {**getattr(method_class(method), "default_conf", {}), **conf}
+    key = config_key(method, full_conf, weights_id, db.tiles_hash(), index_factory)
     gdir = db.folder / "global" / f"{method}-{key}"
     report = {"method": method, "key": key, "dir": str(gdir.relative_to(db.folder)), "n_tiles": len(db.tiles)}
     entry = {"dir": report["dir"], "conf": conf, "weights": str(weights) if weights else None,

@@ -39,9 +39,10 @@ class Localization:
     best = None  # rerank.Candidate, for visualisation
 
     def row(self) -> dict:
+        """The results-CSV row, all strings: a fresh, resumed or cached run returns equal rows."""
         loc = np.isfinite(self.lat)
         r = {"name": self.name, "lat": f"{self.lat:.8f}" if loc else "", "lon": f"{self.lon:.8f}" if loc else "",
-             "status": self.status, "inliers": self.inliers, "top_tiles": ";".join(self.top_tiles),
+             "status": self.status, "inliers": str(self.inliers), "top_tiles": ";".join(self.top_tiles),
              "retrieved_tiles": ";".join(self.retrieved)}
         for s in STAGES:
             r[f"{s}_ms"] = f"{self.times_ms.get(s, 0.0):.2f}"

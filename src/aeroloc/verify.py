@@ -100,8 +100,10 @@ def homography_is_sane(H, src_size, min_scale: float = 0.05, max_scale: float = 
         return False, "singular homography (the image collapses to a line or a point)"
     corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
     centre = np.array([[w / 2, h / 2]])
-    _, wc = _project(H, centre)
-    H = H / wc[0]  # homogeneous scale so that w = 1 at the centre (sign included)
+    wc = float(H[2] @ [w / 2, h / 2, 1.0])  # homogeneous w of the centre
+    if not abs(wc) > 1e-12 * scale_h:
+        return False, "the image centre projects to or beyond the horizon"
+    H = H / wc  # homogeneous scale so that w = 1 at the centre (sign included)
     quad, ws = _project(H, corners)
     if (ws <= 1e-9).any():
         return False, "a corner projects to or beyond the horizon"

@@ -24,8 +24,13 @@ def add_arguments(p):
 def run(args) -> int:
     from aeroloc.database import Database, build_global
     from aeroloc.device import pick_device
+    from aeroloc.models.retrieval import method_class
+    from aeroloc.rerank import rerank_conf
     from aeroloc.tiling import write_tiles
 
+    method_class(args.method)  # unknown names fail now, not after the tiles (or the descriptors) are built
+    if args.local:
+        rerank_conf(args.local)
     device = pick_device(args.device)
     info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
     print(summary(info, args.out))

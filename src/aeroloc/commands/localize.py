@@ -24,12 +24,15 @@ def run(args) -> int:
     from aeroloc.errors import AerolocError
     from aeroloc.queries import load_queries
     from aeroloc.localize import localize_queries
+    from aeroloc.rerank import rerank_conf
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")
+    rerank = None if args.rerank in ("none", "") else args.rerank
+    if rerank:
+        rerank_conf(rerank)  # an unknown name fails before the database and queries are read
     db = Database(args.db)
     queries = load_queries(args.queries)
-    rerank = None if args.rerank in ("none", "") else args.rerank
     rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
                             pick_device(args.device), save_matches=args.save_matches)
     n_loc = sum(1 for r in rows if r["lat"])

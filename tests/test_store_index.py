@@ -1,0 +1,203 @@
+"""On-disk stores (resume, completeness, HDF5 round trip) and the Faiss index wrapper (exactness, factories)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from aeroloc.errors import AerolocError
+from aeroloc.index import build_index, load_index, save_index, search
+from aeroloc.store import DescriptorStore, FeatureStore, config_key
+
+
+def unit_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
+    x = np.random.default_rng(seed).standard_normal((n, dim)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+# --- DescriptorStore ----------------------------------------------------------------------------------------
+def test_descriptor_store_resumes_after_interruption_and_equals_one_shot(tmp_path):
+    x = unit_rows(10, 8)
+    # one-shot reference
+    ref = DescriptorStore(tmp_path / "ref", 10, 8)
+    start, write, finish = ref.writer()
+    assert start == 0
+    write(x)
+    finish()
+    # interrupted: two batches flushed, then the process "dies" (writer dropped without finish)
+    part = DescriptorStore(tmp_path / "part", 10, 8)
+    start, write, _ = part.writer()
+    write(x[:3])
+    write(x[3:6])
+    del write
+    assert not part.complete
+    with pytest.raises(AerolocError, match="incomplete|missing"):
+        DescriptorStore.open_complete(tmp_path / "part")
+    # a new writer (new process) starts at the flushed row and keeps the rows written before
+    again = DescriptorStore(tmp_path / "part", 10, 8)
+    start, write, finish = again.writer()
+    assert start == 6
+    write(x[6:])
+    finish({"note": "resumed"})
+    done = DescriptorStore.open_complete(tmp_path / "part")
+    assert done.meta["note"] == "resumed" and done.meta["dtype"] == "float16"
+    got = done.load(mmap=False)
+    assert got.dtype == np.float16 and got.shape == (10, 8)
+    np.testing.assert_array_equal(got, ref.load(mmap=False))
+    np.testing.assert_allclose(got.astype(np.float32), x, atol=1e-3)  # float16 precision
+    assert not (tmp_path / "part" / "progress.json").exists()
+
+
+def test_descriptor_store_shape_change_starts_afresh_and_finish_checks_rows(tmp_path):
+    s = DescriptorStore(tmp_path, 6, 4)
+    _, write, finish = s.writer()
+    write(unit_rows(2, 4))
+    with pytest.raises(AerolocError, match="2 of 6"):
+        finish()
+    with pytest.raises(AerolocError, match="dim 4"):
+        write(unit_rows(2, 5))
+    # another shape (e.g. other tile count) must not reuse the 2 rows written for (6, 4)
+    assert DescriptorStore(tmp_path, 7, 4).writer()[0] == 0
+
+
+def test_half_written_store_is_refused(tmp_path):
+    s = DescriptorStore(tmp_path, 4, 3)
+    _, write, _ = s.writer()
+    write(unit_rows(4, 3))  # every row there, but finish() never ran: no meta.json
+    assert (tmp_path / "descriptors.npy").is_file() and not (tmp_path / "meta.json").exists()
+    with pytest.raises(AerolocError, match=str(tmp_path.name)):
+        DescriptorStore.open_complete(tmp_path)
+    # a meta.json that does not say complete is refused too
+    (tmp_path / "meta.json").write_text(json.dumps({"n": 4, "dim": 3, "complete": False}))
+    with pytest.raises(AerolocError, match="incomplete"):
+        DescriptorStore.open_complete(tmp_path)
+    with pytest.raises(AerolocError):
+        DescriptorStore.open_complete(tmp_path / "nowhere")
+
+
+def test_config_key_changes_with_any_part():
+    a = config_key("xfeat-vlad", {"n_clusters": 64}, "tiles1")
+    assert a == config_key("xfeat-vlad", {"n_clusters": 64}, "tiles1")
+    assert a != config_key("xfeat-vlad", {"n_clusters": 128}, "tiles1")
+    assert a != config_key("xfeat-vlad", {"n_clusters": 64}, "tiles2")
+
+
+# --- FeatureStore -------------------------------------------------------------------------------------------
+def features(n: int, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    return {"keypoints": (rng.random((n, 2)) * 500).astype(np.float32),
+            "descriptors": rng.standard_normal((n, 64)).astype(np.float32),
+            "scores": rng.random(n).astype(np.float32),
+            "image_size": np.array([512, 384], np.int64), "scale": np.float64(2.0)}
+
+
+def test_feature_store_round_trip(tmp_path):
+    store = FeatureStore(tmp_path / "f.h5")
+    assert store.names() == set()
+    a, b = features(100, 1), features(7, 2)
+    store.write_many({"r000c000": a, "r000c001": b})
+    store.write_many({"r001c000": features(0, 3)})  # a tile without keypoints is a valid entry
+    assert store.names() == {"r000c000", "r000c001", "r001c000"}
+    with store.reader() as r:
+        got = r.get("r000c000")
+        empty = r.get("r001c000")
+        with pytest.raises(AerolocError, match="r009c009"):
+            r.get("r009c009")
+    np.testing.assert_array_equal(got["keypoints"], a["keypoints"])  # keypoints exact (float32)
+    assert got["keypoints"].dtype == np.float32
+    assert got["descriptors"].dtype == np.float32 and got["scores"].dtype == np.float32
+    np.testing.assert_array_equal(got["descriptors"], a["descriptors"].astype(np.float16).astype(np.float32))
+    np.testing.assert_allclose(got["descriptors"], a["descriptors"], rtol=1e-3, atol=1e-3)
+    np.testing.assert_array_equal(got["image_size"], [512, 384])
+    assert float(got["scale"]) == 2.0
+    assert empty["keypoints"].shape == (0, 2) and empty["descriptors"].shape == (0, 64)
+    # on disk: float16 descriptors
+    import h5py
+
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        assert f["r000c000/descriptors"].dtype == np.float16
+    assert store.bytes_per_item() > 0
+
+
+def test_feature_store_group_visible_only_after_complete_write(tmp_path, monkeypatch):
+    import h5py
+
+    store = FeatureStore(tmp_path / "f.h5")
+    store.write_many({"done": features(5, 0)})
+    real = h5py.Group.create_dataset
+    calls = {"n": 0}
+
+    def dying(self, name, *a, **kw):  # crash while the second dataset of a tile is being written
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt("simulated crash")
+        return real(self, name, *a, **kw)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", dying)
+    with pytest.raises(KeyboardInterrupt):
+        store.write_many({"half": features(5, 1)})
+    monkeypatch.setattr(h5py.Group, "create_dataset", real)
+    assert store.names() == {"done"}  # the half-written tile is not listed (it stays under its temp name)
+    store.write_many({"half": features(5, 1)})  # rewriting it works and replaces the leftover
+    assert store.names() == {"done", "half"}
+    with store.reader() as r:
+        np.testing.assert_array_equal(r.get("half")["keypoints"], features(5, 1)["keypoints"])
+
+
+# --- index ----------------------------------------------------------------------------------------------------
+def test_flat_inner_product_is_exact():
+    db, q = unit_rows(200, 32, 1), unit_rows(5, 32, 2)
+    index = build_index(db, "Flat")
+    scores, ids = search(index, q, 10)
+    dots = q @ db.T
+    expected = np.argsort(-dots, axis=1)[:, :10]
+    np.testing.assert_array_equal(ids, expected)
+    np.testing.assert_allclose(scores, np.take_along_axis(dots, expected, 1), atol=1e-5)
+    # one query as a 1-d vector works too
+    s1, i1 = search(index, q[0], 3)
+    np.testing.assert_array_equal(i1[0], expected[0, :3])
+
+
+def test_k_larger_than_ntotal_returns_all():
+    db = unit_rows(7, 16)
+    scores, ids = search(build_index(db), db[:2], 50)
+    assert ids.shape == (2, 7) and sorted(ids[0]) == list(range(7)) and (ids >= 0).all()
+    assert ids[0, 0] == 0 and ids[1, 0] == 1  # each vector is its own nearest neighbour
+    with pytest.raises(AerolocError, match=">= 1"):
+        search(build_index(db), db[:1], 0)
+
+
+@pytest.mark.parametrize("factory", ["HNSW32", "IVF16,PQ8"])
+def test_factory_strings_build_and_search(factory):
+    db = unit_rows(1000, 32, 3)
+    index = build_index(db, factory)
+    assert index.ntotal == 1000 and index.is_trained
+    # querying with database vectors: an approximate index still finds most of them first
+    q = db[:50]
+    _, ids = search(index, q, 5)
+    assert ids.shape == (50, 5)
+    self_hit = np.mean([i in row for i, row in enumerate(ids)])
+    assert self_hit >= 0.8, f"{factory}: only {self_hit:.2f} of database vectors find themselves in top-5"
+
+
+def test_bad_factory_and_too_little_training_data():
+    db = unit_rows(20, 16)
+    with pytest.raises(AerolocError, match="NoSuchIndex"):
+        build_index(db, "NoSuchIndex")
+    with pytest.raises(AerolocError, match="training"):
+        build_index(db, "IVF16,PQ8")
+
+
+def test_save_load_round_trip(tmp_path):
+    db, q = unit_rows(300, 24, 4), unit_rows(3, 24, 5)
+    index = build_index(db, "HNSW32")
+    save_index(index, tmp_path / "index.faiss")
+    assert not (tmp_path / "index.faiss.part").exists()
+    back = load_index(tmp_path / "index.faiss")
+    assert back.ntotal == 300
+    for a, b in zip(search(index, q, 8), search(back, q, 8)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(AerolocError, match="not found"):
+        load_index(tmp_path / "missing.faiss")

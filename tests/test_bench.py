@@ -212,10 +212,12 @@ def test_paper_experiments_validate():
     data = repo.parent / "shared" / "data"
     if not data.is_dir():
         pytest.skip(f"real data not found at {data}")
-    for name in ("paper-zoom", "paper-overlap", "paper-rerank"):
+    from aeroloc.models.retrieval import DEFAULT_METHOD
+
+    for name in ("paper-zoom", "paper-overlap", "paper-rerank", "retrieval-sweep"):
         exp = load_experiment(repo / "experiments" / f"{name}.yaml")
         assert exp.maps[0].path == (data / "naip-nd" / "map_20200831.tif")
-        assert all(c.method == "xfeat-vlad" for c in expand(exp))
+        assert DEFAULT_METHOD in {c.method for c in expand(exp)}  # the default method is always measured
     zoom = load_experiment(repo / "experiments" / "paper-zoom.yaml")
     assert zoom.zooms == (0.5, 1.0, 1.5, 2.0) and zoom.overlaps == (0.0,)
     rerank = load_experiment(repo / "experiments" / "paper-rerank.yaml")

@@ -333,4 +333,4 @@ def meters_to_pixels(m: Map, metres: float) -> int:
 
 
 __all__ = ["Map", "GeoTiffMap", "TileFolderMap", "open_map", "open_metadata_folder", "open_xyz_folder",
-           "meters_to_pixels", "math"]
+           "meters_to_pixels"]

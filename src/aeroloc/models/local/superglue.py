@@ -14,8 +14,8 @@ import torch
 from torch import nn
 
 from aeroloc.errors import AerolocError
-from aeroloc.models.local.base import Features, load_strict, merge_conf, to_device
-from aeroloc.models.weights import WeightSource, load_state_dict, resolve_weights
+from aeroloc.models.local.base import Features, choose_weights, load_strict, merge_conf, to_device
+from aeroloc.models.weights import WeightSource, load_state_dict
 
 _URL = "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_{}.pth"
 SUPERGLUE_WEIGHTS = {
@@ -150,11 +150,8 @@ class SuperGlueMatcher:
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):
         self.conf = c = merge_conf(self, conf)
-        if c["weights"] not in SUPERGLUE_WEIGHTS:
-            raise AerolocError(f"unknown SuperGlue weights '{c['weights']}'; choose one of: "
-                               f"{', '.join(SUPERGLUE_WEIGHTS)}")
         self.device = to_device(device)
-        path = resolve_weights(SUPERGLUE_WEIGHTS[c["weights"]], weights)
+        path = choose_weights(SUPERGLUE_WEIGHTS, c["weights"], f"unknown SuperGlue weights '{c['weights']}'", weights)
         self.net = SuperGlue({"sinkhorn_iterations": c["sinkhorn_iterations"],
                               "match_threshold": c["match_threshold"]})
         load_strict(self.net, load_state_dict(path), path)

@@ -18,7 +18,10 @@ def run(args) -> int:
         line = f"  {name}{' (default)' if name == DEFAULT_METHOD else ''}"
         if args.check:
             try:
-                src = getattr(method_class(name), "weight_source", None)
+                import torch
+
+                with torch.device("meta"):  # the default variant's weight source, without allocating weights
+                    src = getattr(method_class(name)(), "weight_source", None)
                 line += ": " + ("ready" if src is None else f"weights at {resolve_weights(src, download=False)}")
             except AerolocError as exc:
                 line += f": {exc}"

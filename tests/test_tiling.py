@@ -174,20 +174,28 @@ def test_write_tiles_renders_the_map_and_caches(tmp_path, seed):
     assert len(list((out / "images").iterdir())) == len(TileGrid(m, 2, 0))
 
 
+def crash_image_writes_after(n: int, monkeypatch):
+    """Make the n+1-th tile image write raise KeyboardInterrupt (an interrupted build); returns the real writer."""
+    import aeroloc.images
+
+    real_write, calls = aeroloc.images.write_image, []
+
+    def crash(path, image, **kw):
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        calls.append(path)
+        real_write(path, image, **kw)
+
+    monkeypatch.setattr(aeroloc.images, "write_image", crash)
+    return real_write
+
+
 def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch):
     import aeroloc.images
 
     s, m = seed
     out = tmp_path / "db"
-    real_write, calls = aeroloc.images.write_image, []
-
-    def crash_after_five(path, image, **kw):
-        if len(calls) == 5:
-            raise KeyboardInterrupt
-        calls.append(path)
-        real_write(path, image, **kw)
-
-    monkeypatch.setattr(aeroloc.images, "write_image", crash_after_five)
+    real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
     monkeypatch.setattr(aeroloc.images, "write_image", real_write)
@@ -209,15 +217,7 @@ def test_interrupted_build_then_other_parameters(tmp_path, seed, monkeypatch):
 
     s, m = seed
     out = tmp_path / "db"
-    real_write, calls = aeroloc.images.write_image, []
-
-    def crash_after_five(path, image, **kw):
-        if len(calls) == 5:
-            raise KeyboardInterrupt
-        calls.append(path)
-        real_write(path, image, **kw)
-
-    monkeypatch.setattr(aeroloc.images, "write_image", crash_after_five)
+    real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         write_tiles(s.path, out, zoom=1, overlap=0, progress=False)
     monkeypatch.setattr(aeroloc.images, "write_image", real_write)

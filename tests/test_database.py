@@ -96,10 +96,13 @@ def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_p
     rep = build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False)
     assert seen == [35, 27]  # the resumed run described only the 27 tiles left
     assert not rep["cached"] and rep["fit_s"] == 0.0  # the fitted vocabulary was reused, not refitted
-    resumed = np.load(gdirs[0] / "descriptors.npy").astype(np.float32)
-    clean = np.load(_global_dir(naip_db) / "descriptors.npy").astype(np.float32)
-    # equal up to float16 rounding of batch-size-dependent float32 noise (measured max 1.5e-5; batch 8 vs 16)
-    np.testing.assert_allclose(resumed, clean, atol=1e-4)
+    resumed = np.load(gdirs[0] / "descriptors.npy")
+    # the reference: an uninterrupted build with the same batches (batch-size-dependent float noise can flip a
+    # hard VLAD assignment near a cluster boundary, so only equal batching makes equal descriptors)
+    ref = tmp_path / "ref"
+    shutil.copytree(naip_db, ref, ignore=shutil.ignore_patterns("global", "local", "db.json"))
+    build_global(Database(ref), METHOD, device="cpu", batch_size=8, progress=False)
+    np.testing.assert_array_equal(resumed, np.load(_global_dir(ref) / "descriptors.npy"))
     Database(folder).load_method(METHOD)  # complete now
 
 

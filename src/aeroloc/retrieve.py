@@ -1,4 +1,11 @@
-"""Retrieval stage: global descriptor of each query -> Faiss search -> top-N tile ids with scores."""
+"""Retrieval stage: global descriptor of each query -> Faiss search -> top-N tile ids with scores.
+
+Query-side rotation search (``rotations`` k > 1): the descriptors of the map's tiles are upright, a query of
+unknown heading is not. The query is described at k headings (360/k steps), the k descriptors are searched in
+one batch and each tile keeps its best score, so the right heading wins without rebuilding the database; the
+cost is k descriptors per query. Rotations by multiples of 90 degrees are exact (``np.rot90``); others rotate
+about the centre on the same canvas, with the corners left pure black, which DenseVLAD methods mask out.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aeroloc.database import Database
+from aeroloc.errors import AerolocError
 from aeroloc.extract import describe_image
 from aeroloc.index import search
 
@@ -19,20 +27,78 @@ class Retrieval:
     times_ms: dict = field(default_factory=dict)  # descriptor, search
 
 
-class Retriever:
-    """Holds a database's method, descriptors and index; ``__call__(image)`` retrieves top-N tiles."""
+def check_rotations(rotations) -> int:
+    if isinstance(rotations, bool) or not isinstance(rotations, (int, np.integer)) or rotations < 1:
+        raise AerolocError(f"rotations must be an integer >= 1 (1 = upright query only), got {rotations!r}")
+    return int(rotations)
 
-    def __init__(self, db: Database, method: str | None = None, device="cpu"):
+
+def rotated_views(image: np.ndarray, k: int):
+    """The image turned counter-clockwise by 360 * i / k degrees, i = 0 .. k-1."""
+    for i in range(k):
+        angle = 360.0 * i / k
+        if angle % 90 == 0:
+            yield np.ascontiguousarray(np.rot90(image, int(angle // 90)))
+        else:
+            yield rotate_image(image, angle)
+
+
+def rotate_image(image: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Rotate counter-clockwise about the centre, same size; every pixel not fully inside the source is set to
+    pure black (interpolated border pixels would otherwise be dark but valid for the VLAD's no-data mask)."""
+    import cv2
+
+    h, w = image.shape[:2]
+    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle_deg, 1.0)
+    out = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = cv2.warpAffine(np.ones((h, w), np.float32), m, (w, h), flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out[inside < 0.99] = 0
+    return out
+
+
+class Retriever:
+    """Holds a database's method, descriptors and index; ``__call__(image)`` retrieves top-N tiles.
+
+    ``rotations`` (default for every call, or per call) > 1 searches the query at that many headings.
+    """
+
+    def __init__(self, db: Database, method: str | None = None, device="cpu", rotations: int = 1):
+        self.rotations = check_rotations(rotations)
         self.db = db
         self.model, self.store, self.index, self.entry = db.load_method(method, device)
         self.method = method or db.meta.get("default_method")
         self.device = device
 
-    def __call__(self, image: np.ndarray, top_n: int) -> Retrieval:
-        desc, t_desc = describe_image(self.model, image, self.device)
+    def __call__(self, image: np.ndarray, top_n: int, rotations: int | None = None) -> Retrieval:
+        k = self.rotations if rotations is None else check_rotations(rotations)
+        if k == 1:
+            desc, t_desc = describe_image(self.model, image, self.device)
+            t0 = time.perf_counter()
+            scores, ids = search(self.index, desc, top_n)
+            t_search = (time.perf_counter() - t0) * 1000
+            tiles = self.db.tiles
+            return Retrieval([tiles[i].id for i in ids[0] if i >= 0], [float(s) for s in scores[0][ids[0] >= 0]],
+                             {"descriptor": t_desc, "search": t_search})
+        descs, t_desc = [], 0.0  # the total over the k views, turning the image included
+        views = rotated_views(image, k)
+        for _ in range(k):
+            t0 = time.perf_counter()
+            view = next(views)
+            t_desc += (time.perf_counter() - t0) * 1000
+            d, t = describe_image(self.model, view, self.device)
+            descs.append(d)
+            t_desc += t
         t0 = time.perf_counter()
-        scores, ids = search(self.index, desc, top_n)
+        # each rotation's top-N holds every tile of the merged top-N (a tile's best score is its score in some
+        # rotation, and a tile outside that rotation's top-N has N tiles at least as good), so one search suffices
+        scores, ids = search(self.index, np.concatenate(descs), top_n)
+        best: dict[int, float] = {}
+        for i, s in zip(ids.ravel().tolist(), scores.ravel().tolist()):
+            if i >= 0 and s > best.get(i, -np.inf):
+                best[i] = s
+        order = sorted(best, key=lambda i: (-best[i], i))[:top_n]
         t_search = (time.perf_counter() - t0) * 1000
         tiles = self.db.tiles
-        return Retrieval([tiles[i].id for i in ids[0] if i >= 0], [float(s) for s in scores[0][ids[0] >= 0]],
+        return Retrieval([tiles[i].id for i in order], [float(best[i]) for i in order],
                          {"descriptor": t_desc, "search": t_search})

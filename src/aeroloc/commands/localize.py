@@ -13,6 +13,9 @@ def add_arguments(p):
                    help=f"re-ranker: {', '.join(sorted(RERANKERS))} or none (default %(default)s)")
     p.add_argument("--top-k", type=int, default=1, help="tiles kept after re-ranking (default %(default)s)")
     p.add_argument("--method", help="retrieval method if the database holds several")
+    p.add_argument("--rotations", type=int, default=1, metavar="K",
+                   help="retrieve with the query at K headings (360/K steps), for queries of unknown heading "
+                        "(default %(default)s: upright only)")
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
@@ -28,13 +31,15 @@ def run(args) -> int:
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")
+    if args.rotations < 1:
+        raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
     rerank = None if args.rerank in ("none", "") else args.rerank
     if rerank:
         rerank_conf(rerank)  # an unknown name fails before the database and queries are read
     db = Database(args.db)
     queries = load_queries(args.queries)
     rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
-                            pick_device(args.device), save_matches=args.save_matches)
+                            pick_device(args.device), save_matches=args.save_matches, rotations=args.rotations)
     n_loc = sum(1 for r in rows if r["lat"])
     print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
     return 0

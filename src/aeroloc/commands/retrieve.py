@@ -12,6 +12,9 @@ def add_arguments(p):
     p.add_argument("queries", help="queries.csv / queries.txt / folder of photos")
     p.add_argument("--top-n", type=int, default=10)
     p.add_argument("--method", help="method to use if the database holds several (default: last built)")
+    p.add_argument("--rotations", type=int, default=1, metavar="K",
+                   help="search the query at K headings (360/K steps) and keep each tile's best score; for queries "
+                        "of unknown heading (default %(default)s: upright only; 4 or 8 cost K descriptors)")
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--device", default="auto")
 
@@ -22,12 +25,17 @@ def run(args) -> int:
     from aeroloc.database import Database
     from aeroloc.device import pick_device
     from aeroloc.images import read_image
+    from aeroloc.errors import AerolocError
     from aeroloc.queries import load_queries
     from aeroloc.retrieve import Retriever
 
+    if args.top_n < 1:
+        raise AerolocError(f"--top-n must be >= 1, got {args.top_n}")
+    if args.rotations < 1:  # before any work: the database and queries are not read
+        raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
     db = Database(args.db)
     queries = load_queries(args.queries)
-    retriever = Retriever(db, args.method, pick_device(args.device))
+    retriever = Retriever(db, args.method, pick_device(args.device), args.rotations)
     rows = []
     for q in tqdm(queries, desc="retrieve", unit="query", leave=False):
         r = retriever(read_image(q.path), args.top_n)

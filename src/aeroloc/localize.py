@@ -19,7 +19,7 @@ from aeroloc.align import Alignment, align
 from aeroloc.database import Database
 from aeroloc.errors import AerolocError
 from aeroloc.images import read_image
-from aeroloc.retrieve import Retriever
+from aeroloc.retrieve import Retriever, check_rotations
 
 STAGES = ("descriptor", "search", "local_features", "rerank", "align")
 COLUMNS = ["name", "lat", "lon", "status", "inliers", "top_tiles", "retrieved_tiles",
@@ -52,11 +52,11 @@ class Localization:
 
 class Localizer:
     def __init__(self, db: Database, method: str | None = None, rerank: str | None = "xfeat-lighterglue",
-                 device="cpu", rerank_conf: dict | None = None):
+                 device="cpu", rerank_conf: dict | None = None, rotations: int = 1):
         from aeroloc.rerank import Reranker
 
         self.db = db
-        self.retriever = Retriever(db, method, device)
+        self.retriever = Retriever(db, method, device, rotations)  # rotations: query headings searched
         self.reranker = Reranker(db, rerank, device, rerank_conf) if rerank else None
         m = db.info["map"]
         self.map_size = (int(m["width"]), int(m["height"]))
@@ -77,8 +77,9 @@ class Localizer:
         t0 = time.perf_counter()
         a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
                   self.map_size, self.reranker.conf["min_inliers"])
-        if a.localized and self.reranker.conf["screen"] and best.screen < self.reranker.conf["min_screen"]:
-            a = Alignment(f"not localized: screen found {best.screen} inliers < {self.reranker.conf['min_screen']}")
+        doubt = self.reranker.doubt(best) if a.localized else None
+        if doubt:
+            a = Alignment(f"not localized: {doubt}")
         out.times_ms["align"] = (time.perf_counter() - t0) * 1000
         out.lat, out.lon, out.status = a.lat, a.lon, a.status
         return out
@@ -89,10 +90,11 @@ def _config_signature(**kw) -> str:
 
 
 def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=None, rerank="xfeat-lighterglue",
-                     device="cpu", rerank_conf=None, save_matches=None, progress=True) -> list[dict]:
+                     device="cpu", rerank_conf=None, save_matches=None, progress=True, rotations=1) -> list[dict]:
     """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows."""
     from tqdm import tqdm
 
+    rotations = check_rotations(rotations)  # before any file is touched
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     part = out_csv.with_name(out_csv.name + ".part")
@@ -102,7 +104,9 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
     sig = _config_signature(db=str(db.folder.resolve()), top_n=top_n, top_k=top_k, method=method, rerank=rerank,
                             rerank_conf=full_conf(rerank, rerank_conf) if rerank else None,
                             global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
-                            queries=[q.name for q in queries])
+                            queries=[q.name for q in queries],
+                            # only when searched: runs finished before the option existed stay cached
+                            **({"rotations": rotations} if rotations != 1 else {}))
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:
@@ -114,7 +118,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
             rows = [r for r in csv.DictReader(f)]
     done = {r["name"] for r in rows}
     sig_path.write_text(sig)
-    localizer = Localizer(db, method, rerank, device, rerank_conf)
+    localizer = Localizer(db, method, rerank, device, rerank_conf, rotations)
     new_file = not part.is_file() or not rows
     with open(part, "w" if new_file else "a", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)

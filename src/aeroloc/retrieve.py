@@ -5,6 +5,11 @@ unknown heading is not. The query is described at k headings (360/k steps), the 
 one batch and each tile keeps its best score, so the right heading wins without rebuilding the database; the
 cost is k descriptors per query. Rotations by multiples of 90 degrees are exact (``np.rot90``); others rotate
 about the centre on the same canvas, with the corners left pure black, which DenseVLAD methods mask out.
+
+Query scale: tiles are cut to about a query's footprint (that is how zoom is chosen), so a query much larger in
+pixels than a tile is finer than the map. It is shrunk to ``query_scale`` x the tile side first (default 1):
+on Toledo's 1200 px drone photos against 400 px tiles this raised VPR R@1 from 0.53 to 0.67 and cut the
+descriptor from ~440 to ~45 ms; NAIP queries (140-280 px, tiles 256 px) are barely touched.
 """
 
 from __future__ import annotations
@@ -18,6 +23,9 @@ from aeroloc.database import Database
 from aeroloc.errors import AerolocError
 from aeroloc.extract import describe_image
 from aeroloc.index import search
+
+
+QUERY_SCALE = 1.0  # longest query side, in tile sides (see the module docstring)
 
 
 @dataclass
@@ -63,24 +71,43 @@ class Retriever:
     ``rotations`` (default for every call, or per call) > 1 searches the query at that many headings.
     """
 
-    def __init__(self, db: Database, method: str | None = None, device="cpu", rotations: int = 1):
+    def __init__(self, db: Database, method: str | None = None, device="cpu", rotations: int = 1,
+                 query_scale: float | None = QUERY_SCALE):
         self.rotations = check_rotations(rotations)
+        if query_scale is not None and not query_scale > 0:
+            raise AerolocError(f"query_scale must be > 0 (or None: keep the query's size), got {query_scale!r}")
         self.db = db
+        self.max_query_side = query_scale * max(max(t.width, t.height) for t in db.tiles) if query_scale else None
         self.model, self.store, self.index, self.entry = db.load_method(method, device)
         self.method = method or db.meta.get("default_method")
         self.device = device
 
+    def shrink(self, image: np.ndarray) -> np.ndarray:
+        """The query at most ``max_query_side`` pixels on its longer side (area-averaged)."""
+        import cv2
+
+        side = max(image.shape[:2])
+        if not self.max_query_side or side <= self.max_query_side:
+            return image
+        f = self.max_query_side / side
+        size = (max(1, round(image.shape[1] * f)), max(1, round(image.shape[0] * f)))
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
     def __call__(self, image: np.ndarray, top_n: int, rotations: int | None = None) -> Retrieval:
         k = self.rotations if rotations is None else check_rotations(rotations)
+        t0 = time.perf_counter()
+        image = self.shrink(image)
+        t_shrink = (time.perf_counter() - t0) * 1000
         if k == 1:
             desc, t_desc = describe_image(self.model, image, self.device)
+            t_desc += t_shrink
             t0 = time.perf_counter()
             scores, ids = search(self.index, desc, top_n)
             t_search = (time.perf_counter() - t0) * 1000
             tiles = self.db.tiles
             return Retrieval([tiles[i].id for i in ids[0] if i >= 0], [float(s) for s in scores[0][ids[0] >= 0]],
                              {"descriptor": t_desc, "search": t_search})
-        descs, t_desc = [], 0.0  # the total over the k views, turning the image included
+        descs, t_desc = [], t_shrink  # the total over the k views, turning the image included
         views = rotated_views(image, k)
         for _ in range(k):
             t0 = time.perf_counter()

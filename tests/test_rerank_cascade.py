@@ -1,0 +1,106 @@
+"""The re-ranking cascade on real NAIP data (``naip_db``: 35 tiles, xfeat-lighterglue features): an upright query
+whose first candidate is clearly right costs one query extraction and no matcher; the same query turned by a
+quarter is found at the matching rotation and lands where the upright one did; the doubt rule and the query
+shrinking of the retriever, on hand-made inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aeroloc import geo
+from aeroloc.database import Database
+from aeroloc.errors import AerolocError
+from aeroloc.images import read_image
+from aeroloc.queries import load_queries
+from aeroloc.rerank import Candidate, Reranker
+from aeroloc.retrieve import Retriever
+
+# 2012 query with a true tile at retrieval rank 1 and ~450 verified inliers (see test_localize.py)
+QUERY = "naip_20120731_n_018.jpg"
+
+
+@pytest.fixture(scope="module")
+def db(naip_db):
+    return Database(naip_db)
+
+
+@pytest.fixture(scope="module")
+def reranker(db):
+    return Reranker(db, "xfeat-lighterglue", "cpu")
+
+
+@pytest.fixture(scope="module")
+def query(naip_dev):
+    q = {q.name: q for q in load_queries(naip_dev)}[QUERY]
+    return q, read_image(q.path)
+
+
+@pytest.fixture
+def count_extractions(reranker, monkeypatch):
+    calls = []
+    real = reranker.extractor.extract
+
+    def counting(image, mask=None):
+        calls.append(image.shape)
+        return real(image, mask=mask)
+
+    monkeypatch.setattr(reranker.extractor, "extract", counting)
+    return calls
+
+
+def _localize(db, reranker, image, tile_ids):
+    from aeroloc.align import align
+
+    best = reranker(image, tile_ids, 1).candidates[0]
+    m = db.info["map"]
+    a = align(best.H, best.score, (image.shape[1], image.shape[0]), db.by_id[best.tile_id],
+              (int(m["width"]), int(m["height"])), reranker.conf["min_inliers"])
+    return best, a
+
+
+@pytest.mark.slow
+def test_upright_query_costs_one_extraction_and_no_matcher(db, reranker, query, count_extractions):
+    q, image = query
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
+    res = reranker(image, tile_ids, 1)
+    best = res.candidates[0]
+    assert best.screen >= reranker.conf["accept_screen"], best  # a clear screen ...
+    assert res.n_verified == 0 and best.inliers == -1  # ... is trusted without LighterGlue
+    assert len(count_extractions) == 1  # the upright rotation only
+    assert res.n_screened <= 3
+
+
+@pytest.mark.slow
+def test_quarter_turned_query_is_found_at_its_rotation_and_lands_on_the_same_spot(db, reranker, query):
+    q, image = query
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
+    best0, a0 = _localize(db, reranker, image, tile_ids)
+    turned = np.ascontiguousarray(np.rot90(image, 1))  # turned 90° counter-clockwise
+    best1, a1 = _localize(db, reranker, turned, tile_ids)  # same candidates: this tests re-ranking only
+    assert a0.localized and a1.localized, (a0.status, a1.status)
+    assert best1.rot_k == 3  # a quarter turn clockwise undoes it
+    assert geo.geodesic_distance(a0.lat, a0.lon, a1.lat, a1.lon) < 5.0
+    assert geo.geodesic_distance(q.lat, q.lon, a1.lat, a1.lon) < 25.0
+
+
+def test_a_weak_screen_is_overruled_only_by_a_confident_matcher(reranker):
+    c = reranker.conf
+    weak = c["min_screen"] - 2
+    assert reranker.doubt(Candidate("t", 0, screen=weak, inliers=c["min_inliers"] + 6))  # Toledo: 18 / 41, wrong
+    assert reranker.doubt(Candidate("t", 0, screen=weak, inliers=c["confident_inliers"])) is None
+    assert reranker.doubt(Candidate("t", 0, screen=c["min_screen"], inliers=c["min_inliers"])) is None
+    assert reranker.doubt(Candidate("t", 0, screen=c["accept_screen"])) is None  # screen only: min_inliers decides
+    assert "screen found 18 inliers" in reranker.doubt(Candidate("t", 0, screen=18, inliers=41))
+
+
+def test_retriever_shrinks_queries_larger_than_a_tile(db):
+    side = max(max(t.width, t.height) for t in db.tiles)
+    r = Retriever(db, "xfeat-vlad", "cpu")
+    big = np.zeros((3 * side, 4 * side, 3), np.uint8)
+    assert r.shrink(big).shape == (round(0.75 * side), side, 3)
+    small = np.zeros((side - 10, side // 2, 3), np.uint8)
+    assert r.shrink(small) is small
+    assert Retriever(db, "xfeat-vlad", "cpu", query_scale=None).shrink(big) is big
+    with pytest.raises(AerolocError, match="query_scale must be > 0"):
+        Retriever(db, "xfeat-vlad", "cpu", query_scale=0)

@@ -82,7 +82,9 @@ class LighterGlueMatcher:
     (point pruning, -1 off), depth_confidence (early stop, -1 off)."""
 
     name = "lighterglue"
-    default_conf = {"min_conf": 0.1, "width_confidence": 0.95, "depth_confidence": -1}
+    # depth_confidence 0.95 (LightGlue's early exit, the authors' default): ~30 % faster on NAIP pairs, inliers of
+    # right tiles within a few percent, of wrong tiles lower
+    default_conf = {"min_conf": 0.1, "width_confidence": 0.95, "depth_confidence": 0.95}
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):
         import kornia.feature.lightglue as kornia_lightglue

@@ -221,7 +221,8 @@ def test_paper_experiments_validate():
     zoom = load_experiment(repo / "experiments" / "paper-zoom.yaml")
     assert zoom.zooms == (0.5, 1.0, 1.5, 2.0) and zoom.overlaps == (0.0,)
     rerank = load_experiment(repo / "experiments" / "paper-rerank.yaml")
-    assert set(rerank.rerankers) == {"xfeat-lighterglue", "xfeat-mnn", "aliked-lightglue"} and rerank.top_n == (20,)
+    assert set(rerank.rerankers) == {"xfeat-lighterglue", "xfeat-mnn", "aliked-lightglue", "disk-lightglue", "sift"}
+    assert rerank.top_n == (20, 100)
 
 
 # --- results store ------------------------------------------------------------------------------------------

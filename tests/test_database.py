@@ -136,3 +136,17 @@ def test_retrieval_finds_the_true_tile_on_real_cross_season_queries(naip_db, nai
     # overlapping tiles): 0.13, 0.50, 0.78 -- so R@10 says little here, R@1 and R@5 do
     assert recall[1] >= 0.35 and recall[5] >= 0.7, recall
     assert recall[1] >= random[1] + 0.2 and recall[5] >= random[5] + 0.2, (recall, random)
+
+
+def test_queries_are_described_with_the_configuration_the_tiles_were_built_with(naip_db, monkeypatch):
+    """db.json keeps the full effective configuration: a class default changed after the build (a new release)
+    must not change how queries are described against the old tile descriptors."""
+    from aeroloc.models.retrieval import method_class
+
+    cls = method_class(METHOD)
+    built = Database(naip_db).meta["global"][METHOD]["conf"]
+    assert built["n_clusters"] == cls.default_conf["n_clusters"] and set(built) == set(cls.default_conf)
+    monkeypatch.setattr(cls, "default_conf", {**cls.default_conf, "n_clusters": built["n_clusters"] * 2,
+                                              "power_norm": 0.5})
+    model, _, _, _ = Database(naip_db).load_method(METHOD)
+    assert model.conf["n_clusters"] == built["n_clusters"] and model.conf["power_norm"] == built["power_norm"]

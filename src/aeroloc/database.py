@@ -100,7 +100,9 @@ def build_global(db: Database, method: str, conf: dict | None = None, weights=No
     key = config_key(method, full_conf, weights_id, db.tiles_hash(), index_factory)
     gdir = db.folder / "global" / f"{method}-{key}"
     report = {"method": method, "key": key, "dir": str(gdir.relative_to(db.folder)), "n_tiles": len(db.tiles)}
-    entry = {"dir": report["dir"], "conf": conf, "weights": str(weights) if weights else None,
+    # the full effective configuration, so queries are described exactly as the tiles were even after a class
+    # default changes (an entry with the overrides only would pick up the new default for queries alone)
+    entry = {"dir": report["dir"], "conf": _jsonable(full_conf), "weights": str(weights) if weights else None,
              "index": index_factory}
     if (gdir / "meta.json").is_file() and (gdir / "index.faiss").is_file():
         existing = DescriptorStore.open_complete(gdir)
@@ -151,3 +153,8 @@ def build_global(db: Database, method: str, conf: dict | None = None, weights=No
             "tiles_per_s": (len(paths) - start) / max(t_desc, 1e-9),
             "bytes_per_tile": store.bytes_per_item(),
             "index_bytes": (gdir / "index.faiss").stat().st_size}
+
+
+def _jsonable(conf: dict) -> dict:
+    """The configuration as db.json will hold it (tuples become lists; the models accept both)."""
+    return json.loads(json.dumps(conf))

@@ -96,11 +96,14 @@ def test_a_weak_screen_is_overruled_only_by_a_confident_matcher(reranker):
 
 def test_retriever_shrinks_queries_larger_than_a_tile(db):
     side = max(max(t.width, t.height) for t in db.tiles)
-    r = Retriever(db, "xfeat-vlad", "cpu")
+    r = Retriever(db, "xfeat-vlad", "cpu", query_scale=1.0)
     big = np.zeros((3 * side, 4 * side, 3), np.uint8)
     assert r.shrink(big).shape == (round(0.75 * side), side, 3)
     small = np.zeros((side - 10, side // 2, 3), np.uint8)
     assert r.shrink(small) is small
+    default = Retriever(db, "xfeat-vlad", "cpu")  # 1.5 tile sides: a query at the map's resolution stays as it is
+    assert default.shrink(big).shape[1] == round(1.5 * side)
+    assert default.shrink(np.zeros((side, round(1.4 * side), 3), np.uint8)).shape == (side, round(1.4 * side), 3)
     assert Retriever(db, "xfeat-vlad", "cpu", query_scale=None).shrink(big) is big
     with pytest.raises(AerolocError, match="query_scale must be > 0"):
         Retriever(db, "xfeat-vlad", "cpu", query_scale=0)

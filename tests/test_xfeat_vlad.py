@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from aeroloc.errors import AerolocError
 from aeroloc.models.retrieval import build_method
@@ -152,6 +153,22 @@ def test_effnet_rebuild_matches_its_batchnorm_statistics(slice_tiles):
         h.remove()
     assert len(seen) == 32
     assert np.median(seen) > 0.92  # 0-255 input: 0.86
+
+
+def test_effnet_folded_batchnorm_gives_the_same_features_and_keeps_the_checkpoint_layout(slice_tiles):
+    """The inference trunk (BatchNorm folded into the convolutions, channels-last) is an optimisation only:
+    same feature maps as the checkpoint's layers on real tiles, and state_dict() unchanged by using it."""
+    model = build_method("effnet-vlad", {"n_clusters": 8})
+    keys = list(model.state_dict())
+    x = torch.stack([model.preprocess(t) for t in slice_tiles])
+    with torch.inference_mode():
+        plain = F.normalize(model.backbone(x), dim=1)
+        folded = model.dense_features(x)
+    assert folded.shape == plain.shape
+    assert (folded - plain).abs().max() < 2e-3 and F.cosine_similarity(folded, plain, dim=1).min() > 0.9999
+    assert list(model.state_dict()) == keys  # the folded copy is not part of the module tree
+    model.load_state_dict(model.state_dict())  # new weights drop the folded copy; it is rebuilt from them
+    assert model.__dict__["_fused"] is None
 
 
 def _recall_at(model, tiles, images, queries, ns=(1, 10)) -> dict:

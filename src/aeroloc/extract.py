@@ -23,16 +23,23 @@ class _ImageDataset(torch.utils.data.Dataset):
         return self.preprocess(read_image(self.paths[i]))
 
 
-def default_workers(n_items: int) -> int:
+def default_workers(n_items: int, device=None) -> int:
+    """DataLoader workers: none for small sets; on CPU only when a core is left over beside torch's compute
+    (on 2 cores a decoding worker slowed effnet-vlad from 23 to 20 tiles/s); on a GPU up to 4."""
     import os
 
-    return 0 if n_items < 64 else max(1, min(4, (os.cpu_count() or 2) - 1))
+    cpus = os.cpu_count() or 2
+    if n_items < 64:
+        return 0
+    if getattr(device, "type", str(device)) == "cuda":
+        return max(1, min(4, cpus - 1))
+    return max(0, min(4, cpus - 2))
 
 
 def iter_descriptors(model, paths: Sequence, device, batch_size: int = 16, workers: int | None = None,
                      half: bool = False) -> Iterator[np.ndarray]:
     """Yield float32 (b, dim) descriptor batches for ``paths`` in order."""
-    workers = default_workers(len(paths)) if workers is None else workers
+    workers = default_workers(len(paths), device) if workers is None else workers
     loader = torch.utils.data.DataLoader(_ImageDataset(paths, model.preprocess), batch_size=batch_size,
                                          num_workers=workers, shuffle=False)
     use_half = half and device.type == "cuda"

@@ -86,6 +86,21 @@ def test_merged_top_n_is_capped_and_descriptor_time_is_the_total(retriever, dev_
     assert 8 * 2.5 <= r.times_ms["descriptor"] < 8 * 2.5 + 50  # the views' sum, plus turning the image (~0.1 ms)
 
 
+def test_batched_ranking_equals_one_query_at_a_time(retriever, naip_dev):
+    """`aeroloc retrieve` searches queries in batches (an exact scan shared by the batch): same tiles, same
+    scores (to float rounding of a matrix product vs a vector product), with and without rotations."""
+    images = [read_image(q.path) for q in load_queries(naip_dev)[:5]]
+    for k in (1, 4):
+        descs = [retriever.describe(im, k)[0] for im in images]
+        assert all(d.shape == (k, retriever.model.dim) for d in descs)
+        batched = retriever.rank(descs, 10)
+        for im, b in zip(images, batched):
+            alone = retriever(im, 10, rotations=k)
+            assert b.tile_ids == alone.tile_ids, k
+            np.testing.assert_allclose(b.scores, alone.scores, atol=1e-5)
+            assert set(b.times_ms) == {"search"}
+
+
 def test_merge_keeps_each_tiles_best_score_and_breaks_ties_by_tile_order(retriever, dev_query, monkeypatch):
     import aeroloc.retrieve as retrieve
 

@@ -36,16 +36,35 @@ def run(args) -> int:
     db = Database(args.db)
     queries = load_queries(args.queries)
     retriever = Retriever(db, args.method, pick_device(args.device), args.rotations)
-    rows = []
+    rows, batch = [], []
+
+    def flush():
+        # queries are searched in batches: an exact scan of many tiles is shared by the whole batch
+        if not batch:
+            return
+        for (q, desc, t_desc), r in zip(batch, retriever.rank([d for _, d, _ in batch], args.top_n)):
+            r.times_ms["descriptor"] = t_desc
+            rows.append(_row(db, q, r))
+        batch.clear()
+
     for q in tqdm(queries, desc="retrieve", unit="query", leave=False):
-        r = retriever(read_image(q.path), args.top_n)
-        lat, lon = db.by_id[r.tile_ids[0]].centre_latlon
-        rows.append({"name": q.name, "lat": f"{lat:.8f}", "lon": f"{lon:.8f}", "top_tiles": ";".join(r.tile_ids),
-                     "scores": ";".join(f"{s:.4f}" for s in r.scores),
-                     "descriptor_ms": f"{r.times_ms['descriptor']:.1f}", "search_ms": f"{r.times_ms['search']:.3f}"})
+        batch.append((q, *retriever.describe(read_image(q.path))))
+        if len(batch) == SEARCH_BATCH:
+            flush()
+    flush()
     write_rows(args.out, rows)
     print(f"{len(rows)} queries -> {args.out}")
     return 0
+
+
+SEARCH_BATCH = 256  # queries per Faiss search
+
+
+def _row(db, q, r) -> dict:
+    lat, lon = db.by_id[r.tile_ids[0]].centre_latlon
+    return {"name": q.name, "lat": f"{lat:.8f}", "lon": f"{lon:.8f}", "top_tiles": ";".join(r.tile_ids),
+            "scores": ";".join(f"{s:.4f}" for s in r.scores),
+            "descriptor_ms": f"{r.times_ms['descriptor']:.1f}", "search_ms": f"{r.times_ms['search']:.3f}"}
 
 
 def write_rows(path, rows: list[dict]) -> None:

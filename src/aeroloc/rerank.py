@@ -140,17 +140,6 @@ class Reranker:
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
 
-    def _lazy_query_features(self, image: np.ndarray):
-        """rot_k -> features, extracted on first use: an upright photo that matches at once costs one extraction."""
-        cache = {}
-
-        def get(k: int) -> dict:
-            if k not in cache:
-                cache[k] = extract(self.extractor, image, self.conf["query_side"], k)
-            return cache[k]
-
-        return get
-
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
         from aeroloc.images import read_image
@@ -233,19 +222,20 @@ class Reranker:
 
     def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
         t0 = time.perf_counter()
-        qf = self._lazy_query_features(image)
         tfs = self.tile_features(tile_ids)
         t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
         rots = [k % 4 for k in self.conf["rotations"]]
         n_screened = n_verified = 0
+        query = {}  # rot_k -> features, extracted on first use: an upright photo that matches costs one extraction
 
         def features(k):
             nonlocal t_extract
-            t = time.perf_counter()
-            f = qf(k)
-            t_extract += time.perf_counter() - t
-            return f
+            if k not in query:
+                t = time.perf_counter()
+                query[k] = extract(self.extractor, image, self.conf["query_side"], k)
+                t_extract += time.perf_counter() - t
+            return query[k]
 
         if self.conf["screen"]:
             n_screened = self._screen(cands, rots, features, tfs)

@@ -105,8 +105,9 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
                             rerank_conf=full_conf(rerank, rerank_conf) if rerank else None,
                             global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
                             queries=[q.name for q in queries],
-                            # only when searched: runs finished before the option existed stay cached
-                            query_scale=QUERY_SCALE, **({"rotations": rotations} if rotations != 1 else {}))
+                            query_scale=QUERY_SCALE,
+                            # rotations only when searched, so the signature of an upright run stays as it was
+                            **({"rotations": rotations} if rotations != 1 else {}))
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:

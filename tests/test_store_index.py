@@ -298,3 +298,20 @@ def test_save_load_round_trip(tmp_path):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(AerolocError, match="not found"):
         load_index(tmp_path / "missing.faiss")
+
+
+def test_local_store_key_follows_the_tile_features_not_the_reranking_settings():
+    """Thresholds, rotations and geometry change how stored features are used, not the features: same store.
+    The extractor's conf and the tiles' working side change the features: another store."""
+    import types
+
+    from aeroloc import localfeatures
+    from aeroloc.rerank import rerank_conf
+
+    db = types.SimpleNamespace(tiles_hash=lambda: "tiles")
+    key = localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue"))
+    same = rerank_conf("xfeat-lighterglue", {"rotations": [0], "min_inliers": 50, "geometry": "homography",
+                                             "max_verify": 1, "matcher": {"min_conf": 0.5}})
+    assert localfeatures.local_key(db, "xfeat-lighterglue", same) == key
+    for other in ({"tile_side": 384}, {"extractor": {"max_keypoints": 1024}}):
+        assert localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue", other)) != key

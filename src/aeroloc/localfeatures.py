@@ -76,11 +76,14 @@ def to_original(f: dict) -> np.ndarray:
 
 
 def local_key(db, name: str, conf: dict) -> str:
-    """Hash of the pipeline conf, the extractor/matcher conf it names, the tile set and the store's format."""
+    """Hash of what the stored tile features depend on: the extractor and its conf, the tiles' working side, the
+    tile set and the store's format. Re-ranking settings (thresholds, rotations, geometry) are not part of it, so
+    changing them reuses the store."""
     from aeroloc.models.local import reranker_conf
     from aeroloc.rerank import feature_overrides
 
-    return config_key(name, conf, reranker_conf(conf["features"], feature_overrides(conf)), db.tiles_hash(),
+    extractor = reranker_conf(conf["features"], feature_overrides(conf))["extractor"]
+    return config_key(conf["features"], conf["tile_side"], extractor, db.tiles_hash(),
                       {"feature_format": FEATURE_FORMAT})
 
 

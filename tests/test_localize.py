@@ -119,3 +119,42 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
     assert again == rows  # same configuration finished before: read back, nothing rerun
     with pytest.raises(Boom):  # another configuration (top-N) must not reuse those rows
         loc.localize_queries(db, qs, out, top_n=4, method=METHOD, rerank=RERANK, device="cpu", progress=False)
+
+
+def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):
+    import subprocess
+    import sys
+
+    from aeroloc.errors import AerolocError
+    from aeroloc.localize import heading_conf
+
+    assert heading_conf({"max_verify": 2}, True, 1) == {"max_verify": 2, "rotations": [0]}
+    assert heading_conf(None, False, 4) is None
+    with pytest.raises(AerolocError, match="north-up queries need no rotation search"):
+        heading_conf(None, True, 4)
+    out = tmp_path / "r.csv"
+    p = subprocess.run([sys.executable, "-m", "aeroloc.cli", "localize", str(tmp_path), str(naip_dev), "--north-up",
+                        "--rotations", "4", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    lines = [line for line in p.stderr.splitlines() if line.strip()]
+    assert p.returncode == 2 and "Traceback" not in p.stderr + p.stdout
+    assert len(lines) == 1 and "--north-up and --rotations > 1 contradict each other" in lines[0], lines
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_north_up_costs_one_extraction_and_a_turned_query_is_not_localized(db, queries, monkeypatch):
+    """With the heading known, the re-ranker extracts the query once; a query that is in fact turned by a quarter
+    finds no verified match at the upright heading and is reported "not localized", not put somewhere wrong."""
+    from aeroloc.localize import Localizer, heading_conf
+
+    loc = Localizer(db, METHOD, RERANK, "cpu", heading_conf(None, True, 1))
+    calls = []
+    real = loc.reranker.extractor.extract
+    monkeypatch.setattr(loc.reranker.extractor, "extract", lambda im, mask=None: calls.append(1) or real(im, mask=mask))
+    q = queries[GOOD[0]]
+    image = read_image(q.path)
+    res = loc(q.name, image, top_n=10)
+    assert res.status == "localized" and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 25.0
+    assert len(calls) == 1
+    turned = loc(q.name, np.ascontiguousarray(np.rot90(image, 1)), top_n=10)
+    assert turned.status.startswith("not localized"), (turned.status, turned.inliers)

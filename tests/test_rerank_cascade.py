@@ -84,14 +84,22 @@ def test_quarter_turned_query_is_found_at_its_rotation_and_lands_on_the_same_spo
     assert geo.geodesic_distance(q.lat, q.lon, a1.lat, a1.lon) < 25.0
 
 
-def test_a_weak_screen_is_overruled_only_by_a_confident_matcher(reranker):
+def test_doubt_rule_overrules_a_weak_screen_only_where_configured(reranker):
+    """The default scores the matcher by similarity inliers, on which wrong tiles stay <= 24 < min_inliers, so it
+    trusts the matcher alone; a homography-scored setup (where a wrong Toledo tile reached 41) can still require
+    a confident matcher when the screen was weak."""
     c = reranker.conf
-    weak = c["min_screen"] - 2
-    assert reranker.doubt(Candidate("t", 0, screen=weak, inliers=c["min_inliers"] + 6))  # Toledo: 18 / 41, wrong
-    assert reranker.doubt(Candidate("t", 0, screen=weak, inliers=c["confident_inliers"])) is None
-    assert reranker.doubt(Candidate("t", 0, screen=c["min_screen"], inliers=c["min_inliers"])) is None
-    assert reranker.doubt(Candidate("t", 0, screen=c["accept_screen"])) is None  # screen only: min_inliers decides
-    assert "screen found 18 inliers" in reranker.doubt(Candidate("t", 0, screen=18, inliers=41))
+    assert c["geometry"] == "similarity" and c["min_inliers"] >= 30
+    assert reranker.doubt(Candidate("t", 0, screen=3, inliers=c["min_inliers"])) is None
+    strict = {**c, "min_screen": 20, "confident_inliers": 80}
+    old, reranker.conf = reranker.conf, strict
+    try:
+        assert "screen found 18 inliers" in reranker.doubt(Candidate("t", 0, screen=18, inliers=41))
+        assert reranker.doubt(Candidate("t", 0, screen=18, inliers=80)) is None
+        assert reranker.doubt(Candidate("t", 0, screen=20, inliers=35)) is None
+        assert reranker.doubt(Candidate("t", 0, screen=c["accept_screen"])) is None  # screen only: min_inliers decides
+    finally:
+        reranker.conf = old
 
 
 def test_retriever_shrinks_queries_larger_than_a_tile(db):

@@ -11,6 +11,7 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -75,14 +76,68 @@ class Localizer:
         best = rr.candidates[0]
         out.best, out.inliers = best, best.score
         t0 = time.perf_counter()
+        conf = self.reranker.conf
         a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
-                  self.map_size, self.reranker.conf["min_inliers"])
+                  self.map_size, conf["min_inliers"])
         doubt = self.reranker.doubt(best) if a.localized else None
         if doubt:
             a = Alignment(f"not localized: {doubt}")
+        if self._should_realign(a, best, (image.shape[1], image.shape[0])):
+            a = self._realign(image, best, rr.query.get(best.rot_k)) or a
         out.times_ms["align"] = (time.perf_counter() - t0) * 1000
-        out.lat, out.lon, out.status = a.lat, a.lon, a.status
+        out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
         return out
+
+    def _should_realign(self, a: Alignment, best, query_size) -> bool:
+        from aeroloc.refine import beyond_tile
+
+        conf = self.reranker.conf
+        if best.H is None:
+            return False
+        if not a.localized:
+            return conf["refine_min"] is not None and conf["refine_min"] <= best.score < conf["min_inliers"]
+        return conf["refine_outside"] is not None and \
+            beyond_tile(best.H, query_size, self.db.by_id[best.tile_id]) > conf["refine_outside"]
+
+    def _realign(self, image: np.ndarray, best, qf) -> Alignment | None:
+        """A weak best match re-matched against the map window its hypothesis covers (aeroloc.refine); the
+        alignment when that window passes, else None."""
+        from aeroloc.refine import query_window
+
+        tile = self.db.by_id[best.tile_id]
+        if qf is None or self.map is None:
+            return None
+        window = query_window(self.map, tile, best.H, (image.shape[1], image.shape[0]))
+        if window is None:
+            return None
+        n, H, n_matches, vis = self.reranker.match_window(qf, window, tile)
+        a = align(H, n, (image.shape[1], image.shape[0]), window.tile, self.map_size,
+                  self.reranker.conf["min_inliers"])
+        if not a.localized or n <= best.score:
+            return None
+        best.inliers, best.H, best.n_matches, best.matches = n, H, n_matches, None
+        return a
+
+    @cached_property
+    def map(self):
+        """The database's map, opened on first use; None when it is no longer where the database says."""
+        from aeroloc.maps import open_map
+
+        try:
+            return open_map(self.db.info["map"]["path"])
+        except AerolocError:
+            return None
+
+
+def heading_conf(rerank_conf: dict | None, north_up: bool, rotations: int) -> dict | None:
+    """The re-ranker overrides for queries known to be north-up (within about ±45°, e.g. from a compass or
+    gimbal yaw, or satellite imagery): no 90° rotation search, so one query extraction and no screens at wrong
+    headings."""
+    if not north_up:
+        return rerank_conf
+    if rotations != 1:
+        raise AerolocError(f"north-up queries need no rotation search, but rotations={rotations} was asked for")
+    return {**(rerank_conf or {}), "rotations": [0]}
 
 
 def _config_signature(**kw) -> str:
@@ -90,11 +145,16 @@ def _config_signature(**kw) -> str:
 
 
 def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=None, rerank="xfeat-lighterglue",
-                     device="cpu", rerank_conf=None, save_matches=None, progress=True, rotations=1) -> list[dict]:
-    """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows."""
+                     device="cpu", rerank_conf=None, save_matches=None, progress=True, rotations=1,
+                     north_up=False) -> list[dict]:
+    """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows.
+
+    ``rotations`` > 1 retrieves with the query at that many headings; ``north_up`` skips the re-ranker's 90°
+    rotation search (see :func:`heading_conf`)."""
     from tqdm import tqdm
 
     rotations = check_rotations(rotations)  # before any file is touched
+    rerank_conf = heading_conf(rerank_conf, north_up, rotations)
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     part = out_csv.with_name(out_csv.name + ".part")

@@ -8,10 +8,12 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[3]
-# (name, map, queries, zoom, overlap, tile_m): the tile side should be close to the query footprint
+# (name, map, queries, zoom, overlap, tile_m, north_up): the tile side should be close to the query footprint;
+# NAIP queries are north-up within ±15° (satellite imagery), the drone photos were taken at any heading
 DEMO_SETS = [
-    ("naip-nd/dev (cross-season satellite)", "naip-nd/map_20200831.tif", "naip-nd/dev/queries.csv", 1.0, 0.5, None),
-    ("toledo (DJI drone photos)", "toledo/orthomosaic.tif", "toledo/queries.csv", 1.0, 0.5, 200.0),
+    ("naip-nd/dev (cross-season satellite)", "naip-nd/map_20200831.tif", "naip-nd/dev/queries.csv", 1.0, 0.5, None,
+     True),
+    ("toledo (DJI drone photos)", "toledo/orthomosaic.tif", "toledo/queries.csv", 1.0, 0.5, 200.0, False),
 ]
 
 
@@ -45,7 +47,7 @@ def run(args) -> int:
     device = pick_device(args.device)
     rerank = args.rerank or DEFAULT_RERANKER
     lines = []
-    for name, map_rel, q_rel, zoom, overlap, tile_m in DEMO_SETS:
+    for name, map_rel, q_rel, zoom, overlap, tile_m, north_up in DEMO_SETS:
         print(f"\n== {name} ==")
         db_dir = out / Path(map_rel).parent.name
         t0 = time.perf_counter()
@@ -60,7 +62,7 @@ def run(args) -> int:
         csv_path = out / f"{db_dir.name}-results.csv"
         t0 = time.perf_counter()
         rows = localize_queries(db, queries, csv_path, args.top_n, 1, DEFAULT_METHOD, rerank, device,
-                                save_matches=out / f"{db_dir.name}-matches")
+                                save_matches=out / f"{db_dir.name}-matches", north_up=north_up)
         dt = time.perf_counter() - t0
         m = evaluate(read_results(csv_path), queries, db.tiles, (10, 25, 50, 100))
         before = evaluate([_retrieved(r) for r in rows], queries, db.tiles, (10, 25, 50, 100))

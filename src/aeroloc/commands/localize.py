@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 
+# --refine-window: an accepted match whose query reaches 15 % of a tile side beyond the tile is re-matched on the map
+# (NAIP dev, 1280 m tiles: 52 of 120 queries; Georef@10 m 0.82 -> 0.85, median error 4.7 -> 3.7 m)
+REFINE_OUTSIDE = 0.15
+
+
 def add_arguments(p):
     from aeroloc.rerank import DEFAULT_RERANKER, RERANKERS
 
@@ -16,6 +21,12 @@ def add_arguments(p):
     p.add_argument("--rotations", type=int, default=1, metavar="K",
                    help="retrieve with the query at K headings (360/K steps), for queries of unknown heading "
                         "(default %(default)s: upright only)")
+    p.add_argument("--north-up", action="store_true",
+                   help="queries are north-up within about ±45° (compass/gimbal yaw, satellite imagery): skip the "
+                        "re-ranker's 90° rotation search")
+    p.add_argument("--refine-window", action="store_true",
+                   help="re-match queries that reach beyond their best tile against the map window they cover: "
+                        "more inliers and metres of accuracy, ~0.6 s more for those queries")
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
@@ -33,13 +44,18 @@ def run(args) -> int:
         raise AerolocError("--top-n and --top-k must be >= 1")
     if args.rotations < 1:
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
+    if args.north_up and args.rotations != 1:
+        raise AerolocError("--north-up and --rotations > 1 contradict each other: a north-up query needs no "
+                           "heading search")
     rerank = None if args.rerank in ("none", "") else args.rerank
     if rerank:
         rerank_conf(rerank)  # an unknown name fails before the database and queries are read
     db = Database(args.db)
     queries = load_queries(args.queries)
+    conf = {"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None
     rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
-                            pick_device(args.device), save_matches=args.save_matches, rotations=args.rotations)
+                            pick_device(args.device), rerank_conf=conf, save_matches=args.save_matches,
+                            rotations=args.rotations, north_up=args.north_up)
     n_loc = sum(1 for r in rows if r["lat"])
     print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
     return 0

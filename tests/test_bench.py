@@ -511,3 +511,18 @@ def test_html_report_is_offline_and_renders_in_chromium(tmp_path, naip_map, naip
     n_lost = len([i for i in range(n_queries) if i % 7 == 3])
     assert dom.count("leaflet-interactive") >= 3 * (n_queries - n_lost) + n_lost
     assert external_urls(dom) == []
+
+
+def test_key_follows_the_rerankers_effective_settings(tmp_path, monkeypatch):
+    """A changed re-ranker default (threshold, geometry …) gives new keys, so old results are measured again;
+    retrieval-only configurations keep theirs."""
+    from aeroloc import rerank
+
+    root = make_project(tmp_path)
+    doc = base_doc(rerankers=["none", "xfeat-lighterglue"])
+    before = {c.reranker: c.key() for c in expand(load_experiment(write_yaml(root, doc)))}
+    changed = {**rerank.RERANKERS["xfeat-lighterglue"], "min_inliers": 31}
+    monkeypatch.setitem(rerank.RERANKERS, "xfeat-lighterglue", changed)
+    after = {c.reranker: c.key() for c in expand(load_experiment(write_yaml(root, doc, "b.yaml")))}
+    assert after[None] == before[None]
+    assert after["xfeat-lighterglue"] != before["xfeat-lighterglue"]

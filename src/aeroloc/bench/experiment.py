@@ -116,6 +116,10 @@ class Config:
                  [float(t) for t in self.thresholds_m], self.device]
         if self.max_queries is not None:  # only when set, so keys of full query sets stay as they were
             parts.append({"max_queries": int(self.max_queries)})
+        if self.reranker:  # the re-ranker's effective settings: a changed default must not reuse old results
+            from aeroloc.rerank import rerank_conf
+
+            parts.append({"rerank_conf": rerank_conf(self.reranker)})
         return config_key(*parts)
 
     def label(self) -> str:

@@ -74,7 +74,7 @@ class Localizer:
         out.times_ms.update(rr.times_ms)
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
-        out.best, out.inliers = best, best.score
+        out.best = best
         t0 = time.perf_counter()
         conf = self.reranker.conf
         a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
@@ -100,8 +100,9 @@ class Localizer:
             beyond_tile(best.H, query_size, self.db.by_id[best.tile_id]) > conf["refine_outside"]
 
     def _realign(self, image: np.ndarray, best, qf) -> Alignment | None:
-        """A weak best match re-matched against the map window its hypothesis covers (aeroloc.refine); the
-        alignment when that window passes, else None."""
+        """The best match re-matched against the map window its transform says the query covers (aeroloc.refine):
+        the window's alignment when it passes with more inliers than the tile had (``best`` then takes the
+        window's inliers and transform), else None."""
         from aeroloc.refine import query_window
 
         tile = self.db.by_id[best.tile_id]

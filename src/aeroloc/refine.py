@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aeroloc.tiling import Tile, _shifted
+from aeroloc.tiling import Tile, shifted
 
 
 @dataclass
@@ -58,5 +58,5 @@ def query_window(map_, tile: Tile, H: np.ndarray, query_size: tuple[int, int], m
     if c1 - c0 < 16 or r1 - r0 < 16 or max(c1 - c0, r1 - r0) > max_sides * max(tile.width, tile.height):
         return None
     image, valid = map_.read(c0, r0, c1 - c0, r1 - r0)
-    vt = Tile(f"{tile.id}@window", c0, r0, c1 - c0, r1 - r0, _shifted(map_.transform, c0, r0), map_.crs)
+    vt = Tile(f"{tile.id}@window", c0, r0, c1 - c0, r1 - r0, shifted(map_.transform, c0, r0), map_.crs)
     return Window(vt, image, valid)

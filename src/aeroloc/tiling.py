@@ -117,7 +117,7 @@ class TileGrid:
         for i, r in enumerate(self.rows):
             for j, c in enumerate(self.cols):
                 yield Tile(id=f"r{i:03d}c{j:03d}", col=c, row=r, width=self.side, height=self.side,
-                           transform=_shifted(t, c, r), crs=self.map.crs,
+                           transform=shifted(t, c, r), crs=self.map.crs,
                            path=f"images/r{i:03d}c{j:03d}.png")
 
     def params(self) -> dict:
@@ -125,7 +125,7 @@ class TileGrid:
                 "side_px": self.side, "step_px": self.step, "n_rows": len(self.rows), "n_cols": len(self.cols)}
 
 
-def _shifted(t: Affine, col: int, row: int) -> Affine:
+def shifted(t: Affine, col: int, row: int) -> Affine:
     """``t`` composed with a translation by (col, row) pixels (spelled out: affine 3 deprecates ``*``)."""
     return Affine(t.a, t.b, t.a * col + t.b * row + t.c, t.d, t.e, t.d * col + t.e * row + t.f)
 

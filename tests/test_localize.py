@@ -158,3 +158,28 @@ def test_north_up_costs_one_extraction_and_a_turned_query_is_not_localized(db, q
     assert len(calls) == 1
     turned = loc(q.name, np.ascontiguousarray(np.rot90(image, 1)), top_n=10)
     assert turned.status.startswith("not localized"), (turned.status, turned.inliers)
+
+
+@pytest.mark.slow
+def test_numpy_blas_runs_single_threaded_while_localizing(localizer, queries, monkeypatch):
+    """Spinning OpenBLAS threads between the screen's numpy products took the cores from torch (the descriptor
+    ~3x slower on 2 cores): during a localization numpy's BLAS has one thread, and its setting comes back after."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = blas_threads()
+    seen = []
+    real = localizer.reranker.__class__.__call__
+
+    def spy(self, *a, **kw):
+        seen.append(blas_threads())
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(localizer.reranker.__class__, "__call__", spy)
+    q = queries[GOOD[0]]
+    res = localizer(q.name, read_image(q.path), top_n=5)
+    assert res.status == "localized"
+    assert seen == [{1}]
+    assert blas_threads() == before

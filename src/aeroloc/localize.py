@@ -63,6 +63,12 @@ class Localizer:
         self.map_size = (int(m["width"]), int(m["height"]))
 
     def __call__(self, name: str, image: np.ndarray, top_n: int = 20, top_k: int = 1) -> Localization:
+        from aeroloc.device import single_threaded_blas
+
+        with single_threaded_blas():
+            return self._localize(name, image, top_n, top_k)
+
+    def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int) -> Localization:
         r = self.retriever(image, top_n)
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
         if self.reranker is None:  # retrieval only: best tile centre, no alignment

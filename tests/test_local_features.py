@@ -330,3 +330,19 @@ def test_homography_sanity():
     ok, reason = homography_is_sane(np.array([[1.0, 0, 0], [0, 1, 0], [-0.006, 0, 1]]), size)  # corner at w<0
     assert not ok and "horizon" in reason
     assert homography_is_sane(None, size) == (False, "no homography")
+
+
+def test_valid_mask_is_every_pixel_not_pure_black():
+    from aeroloc.images import valid_mask
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    img[rng.random((37, 53)) < 0.3] = 0  # no-data
+    img[0, 0] = (0, 0, 1)  # one channel is enough to be imagery
+    img[0, 1] = (0, 0, 0)
+    expect = np.array([[any(px) for px in row] for row in img.tolist()])
+    assert np.array_equal(valid_mask(img), expect)
+    assert valid_mask(img)[0, 0] and not valid_mask(img)[0, 1]
+    assert np.array_equal(valid_mask(img.astype(np.uint16) * 200), expect)
+    assert np.array_equal(valid_mask(img.astype(np.float32) / 255), expect)
+    assert np.array_equal(valid_mask(img[..., 0]), img[..., 0] > 0)

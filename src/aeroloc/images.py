@@ -26,7 +26,17 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 def valid_mask(image: np.ndarray) -> np.ndarray:
-    """Pixels that carry imagery: not pure black (0,0,0), which marks no-data/borders in rendered tiles."""
+    """Pixels that carry imagery: not pure black (0,0,0), which marks no-data/borders in rendered tiles.
+
+    For unsigned images the channels are OR-ed: a max over the length-3 last axis took 24 ms on a 1200x900 photo
+    (a quarter of its XFeat extraction), the OR 1 ms."""
+    if image.ndim == 2:
+        return image > 0
+    if np.issubdtype(image.dtype, np.unsignedinteger):
+        m = image[..., 0].copy()
+        for c in range(1, image.shape[2]):
+            m |= image[..., c]
+        return m != 0
     return image.max(axis=2) > 0
 
 

@@ -346,3 +346,28 @@ def test_valid_mask_is_every_pixel_not_pure_black():
     assert np.array_equal(valid_mask(img.astype(np.uint16) * 200), expect)
     assert np.array_equal(valid_mask(img.astype(np.float32) / 255), expect)
     assert np.array_equal(valid_mask(img[..., 0]), img[..., 0] > 0)
+
+
+@pytest.mark.slow
+def test_fused_cross_attention_matches_like_kornias_own(naip_pair):
+    """LighterGlue's cross-attention through torch's fused kernel gives the same matches as kornia's explicit
+    softmaxes on a real NAIP pair (scores within float noise); weights and state-dict keys are untouched."""
+    from kornia.feature.lightglue import CrossBlock
+
+    from aeroloc.localfeatures import extract
+    from aeroloc.models.local.xfeat import fuse_cross_attention
+
+    extractor, matcher = build_reranker("xfeat-lighterglue", "cpu")
+    blocks = [m for m in matcher.net.modules() if isinstance(m, CrossBlock)]
+    assert len(blocks) == matcher.net.conf.n_layers and all("forward" in vars(b) for b in blocks)
+    keys = list(matcher.net.state_dict())
+    image, true_crop, _, _ = naip_pair
+    f0, f1 = extract(extractor, image, 512), extract(extractor, true_crop, 512)
+    m_fused, s_fused = matcher.match(f0, f1)
+    for b in blocks:
+        del b.forward  # back to kornia's CrossBlock.forward
+    m_kornia, s_kornia = matcher.match(f0, f1)
+    assert len(m_kornia) > 30
+    np.testing.assert_array_equal(m_fused, m_kornia)
+    np.testing.assert_allclose(s_fused, s_kornia, atol=1e-3)
+    assert fuse_cross_attention(matcher.net) == len(blocks) and list(matcher.net.state_dict()) == keys

@@ -127,6 +127,7 @@ class FakePipeline:
     ({"thresholds_m": [10, -1]}, "thresholds_m[1]"),
     ({"maps": [{"name": "m", "path": "data/map.tif", "tile_m": -5}]}, "maps[0].tile_m"),
     ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 0}]}, "queries[0].limit"),
+    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "north_up": "yes"}]}, "queries[0].north_up"),
     ({"zoom": [1]}, "zoom"),  # typo of zooms: unknown fields are errors, not silently ignored
 ])
 def test_validation_error_names_file_and_field(tmp_path, change, field):
@@ -526,3 +527,14 @@ def test_key_follows_the_rerankers_effective_settings(tmp_path, monkeypatch):
     after = {c.reranker: c.key() for c in expand(load_experiment(write_yaml(root, doc, "b.yaml")))}
     assert after[None] == before[None]
     assert after["xfeat-lighterglue"] != before["xfeat-lighterglue"]
+
+
+def test_north_up_query_sets_are_their_own_configurations_for_rerankers_only(tmp_path):
+    root = make_project(tmp_path)
+    q = {"name": "q", "path": "data/queries.csv", "map": "m"}
+    plain = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(queries=[q]))))}
+    north = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(
+        queries=[{**q, "north_up": True}]), "n.yaml")))}
+    assert north["xfeat-lighterglue"].north_up and north["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
+    assert "north-up" in north["xfeat-lighterglue"].label()
+    assert not north[None].north_up and north[None].key() == plain[None].key()  # retrieval ignores the heading

@@ -6,7 +6,7 @@ Example (all keys; only ``name``, ``maps``, ``queries`` and ``methods`` are requ
     maps:
       - {name: naip-nd, path: ../shared/data/naip-nd/map_20200831.tif, tile_m: null}
     queries:
-      - {name: naip-nd/dev, path: ../shared/data/naip-nd/dev/queries.csv, map: naip-nd, limit: 40}
+      - {name: naip-nd/dev, path: ../shared/data/naip-nd/dev/queries.csv, map: naip-nd, limit: 40, north_up: true}
     methods: [xfeat-vlad]            # aeroloc.models.retrieval.METHODS
     rerankers: [none]                # none = retrieval only; else aeroloc.models.local.RERANKERS
     zooms: [0.5, 1, 1.5, 2]          # > 0
@@ -25,6 +25,7 @@ file*: the nearest folder, starting at the YAML's own folder and going up, that 
 
 ``limit: n`` on a query set keeps an evenly spaced subset of n queries (:func:`sample_queries`, applied by the
 pipeline), so slow re-rankers fit a time budget while every part of the set (dates, cameras) stays represented.
+``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
 
 Retrieval-only configurations (re-ranker ``none``) do not depend on N beyond the longest list (Recall@N is
 computed for every N up to it), so they are swept once with the largest ``top_n``.
@@ -60,6 +61,7 @@ class QuerySpec:
     path: Path
     map: str
     limit: int | None = None  # evenly spaced subset of this many queries
+    north_up: bool = False  # images north-up within ±45°: the re-ranker skips its 90° rotation search
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,7 @@ class Config:
     map_identity: str = field(default="", compare=False)
     queries_identity: str = field(default="", compare=False)
     max_queries: int | None = None  # the pipeline keeps sample_queries(queries, max_queries)
+    north_up: bool = False  # localize_queries(north_up=...)
 
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
@@ -116,6 +119,8 @@ class Config:
                  [float(t) for t in self.thresholds_m], self.device]
         if self.max_queries is not None:  # only when set, so keys of full query sets stay as they were
             parts.append({"max_queries": int(self.max_queries)})
+        if self.north_up:  # likewise only when set
+            parts.append({"north_up": True})
         if self.reranker:  # the re-ranker's effective settings: a changed default must not reuse old results
             from aeroloc.rerank import rerank_conf
 
@@ -128,6 +133,8 @@ class Config:
                  f"overlap {self.overlap:g}", f"N={self.top_n}"]
         if self.reranker:
             parts.append(f"K={self.top_k}")
+        if self.north_up:
+            parts.append("north-up")
         return " · ".join(parts)
 
     def as_dict(self) -> dict:
@@ -225,7 +232,10 @@ class _Validator:
         out = []
         for i, q in enumerate(self.entries("queries")):
             where = f"queries[{i}]"
-            self.only_keys(where, q, {"name", "path", "map", "limit"})
+            self.only_keys(where, q, {"name", "path", "map", "limit", "north_up"})
+            north_up = q.get("north_up", False)
+            if not isinstance(north_up, bool):
+                self.fail(f"{where}.north_up", f"expected true or false, got {north_up!r}")
             limit = q.get("limit")
             if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
                 self.fail(f"{where}.limit", f"expected a number of queries >= 1 (or left out), got {limit!r}")
@@ -235,7 +245,7 @@ class _Validator:
                 map_name = next(iter(map_names))
             if map_name not in map_names:
                 self.fail(f"{where}.map", f"{map_name!r} is not one of the maps ({', '.join(sorted(map_names))})")
-            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit))
+            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up))
         self.unique("queries", [q.name for q in out])
         return out
 
@@ -382,7 +392,8 @@ def expand(exp: Experiment) -> list[Config]:
                            queries_name=q.name, queries_path=str(q.path), method=method, reranker=reranker,
                            zoom=zoom, overlap=overlap, top_n=n, top_k=min(exp.top_k, n),
                            thresholds_m=exp.thresholds_m, device=exp.device, map_identity=ident(m.path),
-                           queries_identity=ident(q.path), max_queries=q.limit)
+                           queries_identity=ident(q.path), max_queries=q.limit,
+                           north_up=q.north_up and reranker is not None)  # retrieval ignores it
                 if c.key() not in keys:  # e.g. one queries file listed under two names: measure it once
                     keys.add(c.key())
                     out.append(c)

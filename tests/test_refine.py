@@ -91,3 +91,11 @@ def test_weak_tile_match_passes_on_its_map_window(db, naip_dev):
     assert a is not None and a.localized and c.inliers >= rr.conf["min_inliers"]
     assert geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 25.0
     assert results["r001c004"][0] is None
+
+
+def test_a_map_that_is_gone_turns_the_window_stage_off_with_a_warning(tmp_path, naip_map):
+    from aeroloc.refine import open_map_for_refine
+
+    assert open_map_for_refine(naip_map).width > 0
+    with pytest.warns(UserWarning, match=r"map not found; weak matches are not re-matched on the map window"):
+        assert open_map_for_refine(tmp_path / "moved.tif") is None

@@ -127,13 +127,10 @@ class Localizer:
 
     @cached_property
     def map(self):
-        """The database's map, opened on first use; None when it is no longer where the database says."""
-        from aeroloc.maps import open_map
+        """The database's map, opened on first use; None (with a warning) when it can't be opened any more."""
+        from aeroloc.refine import open_map_for_refine
 
-        try:
-            return open_map(self.db.info["map"]["path"])
-        except AerolocError:
-            return None
+        return open_map_for_refine(self.db.info["map"]["path"])
 
 
 def heading_conf(rerank_conf: dict | None, north_up: bool, rotations: int) -> dict | None:
@@ -143,7 +140,8 @@ def heading_conf(rerank_conf: dict | None, north_up: bool, rotations: int) -> di
     if not north_up:
         return rerank_conf
     if rotations != 1:
-        raise AerolocError(f"north-up queries need no rotation search, but rotations={rotations} was asked for")
+        raise AerolocError(f"--north-up and --rotations > 1 contradict each other: north-up queries need no rotation "
+                           f"search, but rotations={rotations} was asked for")
     return {**(rerank_conf or {}), "rotations": [0]}
 
 

@@ -10,11 +10,25 @@ more with the query than any wrong tile does, so it stays "not localized".
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from aeroloc.tiling import Tile, shifted
+
+
+def open_map_for_refine(path):
+    """The map to cut windows from, or None with a warning: without it weak matches stay "not localized" (the
+    tiles alone still localize every query they did before), so results differ from a run that had the map."""
+    from aeroloc.errors import AerolocError
+    from aeroloc.maps import open_map
+
+    try:
+        return open_map(path)
+    except AerolocError as exc:
+        warnings.warn(f"{exc}; weak matches are not re-matched on the map window (aeroloc.refine)", stacklevel=2)
+        return None
 
 
 @dataclass

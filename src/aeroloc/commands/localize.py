@@ -37,16 +37,14 @@ def run(args) -> int:
     from aeroloc.device import pick_device
     from aeroloc.errors import AerolocError
     from aeroloc.queries import load_queries
-    from aeroloc.localize import localize_queries
+    from aeroloc.localize import heading_conf, localize_queries
     from aeroloc.rerank import rerank_conf
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")
     if args.rotations < 1:
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
-    if args.north_up and args.rotations != 1:
-        raise AerolocError("--north-up and --rotations > 1 contradict each other: a north-up query needs no "
-                           "heading search")
+    heading_conf(None, args.north_up, args.rotations)  # contradicting heading options fail before any work
     rerank = None if args.rerank in ("none", "") else args.rerank
     if rerank:
         rerank_conf(rerank)  # an unknown name fails before the database and queries are read

@@ -128,6 +128,8 @@ class FakePipeline:
     ({"maps": [{"name": "m", "path": "data/map.tif", "tile_m": -5}]}, "maps[0].tile_m"),
     ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 0}]}, "queries[0].limit"),
     ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "north_up": "yes"}]}, "queries[0].north_up"),
+    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": 0}]}, "queries[0].query_gsd"),
+    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": "5"}]}, "queries[0].query_gsd"),
     ({"zoom": [1]}, "zoom"),  # typo of zooms: unknown fields are errors, not silently ignored
 ])
 def test_validation_error_names_file_and_field(tmp_path, change, field):
@@ -538,3 +540,15 @@ def test_north_up_query_sets_are_their_own_configurations_for_rerankers_only(tmp
     assert north["xfeat-lighterglue"].north_up and north["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
     assert "north-up" in north["xfeat-lighterglue"].label()
     assert not north[None].north_up and north[None].key() == plain[None].key()  # retrieval ignores the heading
+
+
+def test_a_query_resolution_makes_dense_configurations_for_rerankers_only(tmp_path):
+    root = make_project(tmp_path)
+    q = {"name": "q", "path": "data/queries.csv", "map": "m"}
+    plain = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(queries=[q]))))}
+    dense = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(
+        queries=[{**q, "query_gsd": 5}]), "d.yaml")))}
+    assert dense["xfeat-lighterglue"].query_gsd == 5.0
+    assert dense["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
+    assert "dense @ 5 m/px" in dense["xfeat-lighterglue"].label()
+    assert dense[None].query_gsd is None and dense[None].key() == plain[None].key()

@@ -53,7 +53,9 @@ class Localization:
 
 class Localizer:
     def __init__(self, db: Database, method: str | None = None, rerank: str | None = "xfeat-lighterglue",
-                 device="cpu", rerank_conf: dict | None = None, rotations: int = 1):
+                 device="cpu", rerank_conf: dict | None = None, rotations: int = 1, query_gsd: float | None = None,
+                 dense_conf: dict | None = None):
+        from aeroloc.densemap import check_query_gsd
         from aeroloc.rerank import Reranker
 
         self.db = db
@@ -61,6 +63,8 @@ class Localizer:
         self.reranker = Reranker(db, rerank, device, rerank_conf) if rerank else None
         m = db.info["map"]
         self.map_size = (int(m["width"]), int(m["height"]))
+        self.query_gsd = check_query_gsd(query_gsd)  # metres per query pixel: turns the dense stage on
+        self.dense_conf = dense_conf
 
     def __call__(self, name: str, image: np.ndarray, top_n: int = 20, top_k: int = 1) -> Localization:
         from aeroloc.device import single_threaded_blas
@@ -71,6 +75,16 @@ class Localizer:
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int) -> Localization:
         r = self.retriever(image, top_n)
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
+        dense_ms = 0.0
+        if self.dense is not None:
+            t0 = time.perf_counter()
+            d = self.dense.locate(image, [self.db.by_id[t] for t in r.tile_ids])
+            dense_ms = (time.perf_counter() - t0) * 1000
+            if d is not None:
+                out.times_ms["align"] = dense_ms
+                out.lat, out.lon, out.status = d.lat, d.lon, d.status()
+                out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[:top_k or None]
+                return out
         if self.reranker is None:  # retrieval only: best tile centre, no alignment
             out.top_tiles = r.tile_ids[:top_k] if top_k else r.tile_ids
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
@@ -90,7 +104,7 @@ class Localizer:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
             a = self._realign(image, best, rr.query.get(best.rot_k)) or a
-        out.times_ms["align"] = (time.perf_counter() - t0) * 1000
+        out.times_ms["align"] = (time.perf_counter() - t0) * 1000 + dense_ms
         out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
         return out
 
@@ -125,6 +139,24 @@ class Localizer:
         best.inliers, best.H, best.n_matches, best.matches = n, H, n_matches, None
         return a
 
+    def _tiles_around(self, col: float, row: float, retrieved: list[str]) -> list[str]:
+        """The re-ranked list for a dense position: every tile containing it (nearest centre first, retrieved or
+        not), then the other retrieved tiles in retrieval order."""
+        inside = sorted((t for t in self.db.tiles if t.col <= col <= t.col + t.width and t.row <= row <= t.row + t.height),
+                        key=lambda t: (t.col + t.width / 2 - col) ** 2 + (t.row + t.height / 2 - row) ** 2)
+        ids = [t.id for t in inside]
+        return ids + [t for t in retrieved if t not in set(ids)]
+
+    @cached_property
+    def dense(self):
+        """The dense structural stage (aeroloc.densemap) when the queries' ground resolution is known, else None;
+        also None (with a warning) when the map can't be opened."""
+        from aeroloc.densemap import DenseMapLocator
+
+        if self.query_gsd is None or self.map is None:
+            return None
+        return DenseMapLocator(self.map, self.query_gsd, self.dense_conf)
+
     @cached_property
     def map(self):
         """The database's map, opened on first use; None (with a warning) when it can't be opened any more."""
@@ -151,14 +183,19 @@ def _config_signature(**kw) -> str:
 
 def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=None, rerank="xfeat-lighterglue",
                      device="cpu", rerank_conf=None, save_matches=None, progress=True, rotations=1,
-                     north_up=False) -> list[dict]:
+                     north_up=False, query_gsd=None, dense_conf=None) -> list[dict]:
     """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows.
 
     ``rotations`` > 1 retrieves with the query at that many headings; ``north_up`` skips the re-ranker's 90°
-    rotation search (see :func:`heading_conf`)."""
+    rotation search (see :func:`heading_conf`); ``query_gsd`` (metres per query pixel) first tries the dense
+    structural stage (aeroloc.dense), local features only when it finds no distinct match."""
+    from aeroloc.dense import DEFAULTS as DENSE_DEFAULTS
+    from aeroloc.densemap import check_query_gsd
+
     from tqdm import tqdm
 
     rotations = check_rotations(rotations)  # before any file is touched
+    query_gsd = check_query_gsd(query_gsd)
     rerank_conf = heading_conf(rerank_conf, north_up, rotations)
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
@@ -172,7 +209,9 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
                             queries=[q.name for q in queries],
                             query_scale=QUERY_SCALE,
                             # rotations only when searched, so the signature of an upright run stays as it was
-                            **({"rotations": rotations} if rotations != 1 else {}))
+                            **({"rotations": rotations} if rotations != 1 else {}),
+                            **({"query_gsd": query_gsd, "dense": {**DENSE_DEFAULTS, **(dense_conf or {})}}
+                               if query_gsd is not None else {}))
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:
@@ -184,7 +223,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
             rows = [r for r in csv.DictReader(f)]
     done = {r["name"] for r in rows}
     sig_path.write_text(sig)
-    localizer = Localizer(db, method, rerank, device, rerank_conf, rotations)
+    localizer = Localizer(db, method, rerank, device, rerank_conf, rotations, query_gsd, dense_conf)
     new_file = not part.is_file() or not rows
     with open(part, "w" if new_file else "a", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)

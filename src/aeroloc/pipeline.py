@@ -54,14 +54,17 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
 
     queries = sample_queries(load_queries(cfg.queries_path), getattr(cfg, "max_queries", None))
     north_up = bool(getattr(cfg, "north_up", False))
+    query_gsd = getattr(cfg, "query_gsd", None) if cfg.reranker else None
     key = config_key(cfg.method, cfg.reranker, cfg.top_n, cfg.top_k, [q.name for q in queries],
-                     str(Path(cfg.queries_path).resolve()), *([{"north_up": True}] if north_up else []))
+                     str(Path(cfg.queries_path).resolve()), *([{"north_up": True}] if north_up else []),
+                     *([{"query_gsd": float(query_gsd)}] if query_gsd is not None else []))
     stem = f"{cfg.method}-{cfg.reranker or 'none'}-n{cfg.top_n}-k{cfg.top_k}-{key}"
     out_csv = folder / "results" / f"{stem}.csv"
     matches_dir = folder / "results" / f"{stem}-matches" if cfg.reranker else None
     t0 = time.perf_counter()
     rows = localize_queries(db, queries, out_csv, cfg.top_n, cfg.top_k, cfg.method, cfg.reranker, device,
-                            save_matches=matches_dir, progress=progress, north_up=north_up and bool(cfg.reranker))
+                            save_matches=matches_dir, progress=progress, north_up=north_up and bool(cfg.reranker),
+                            query_gsd=query_gsd)
     t_loc = time.perf_counter() - t0
     results = read_results(out_csv)
     metrics = evaluate(results, queries, db.tiles, tuple(cfg.thresholds_m))

@@ -26,6 +26,8 @@ file*: the nearest folder, starting at the YAML's own folder and going up, that 
 ``limit: n`` on a query set keeps an evenly spaced subset of n queries (:func:`sample_queries`, applied by the
 pipeline), so slow re-rankers fit a time budget while every part of the set (dates, cameras) stays represented.
 ``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
+``query_gsd: 5`` gives the images' ground resolution in metres per pixel (``aeroloc localize --query-gsd 5``): the
+dense structural stage is tried before the re-ranker. Both apply to configurations with a re-ranker only.
 
 Retrieval-only configurations (re-ranker ``none``) do not depend on N beyond the longest list (Recall@N is
 computed for every N up to it), so they are swept once with the largest ``top_n``.
@@ -62,6 +64,7 @@ class QuerySpec:
     map: str
     limit: int | None = None  # evenly spaced subset of this many queries
     north_up: bool = False  # images north-up within ±45°: the re-ranker skips its 90° rotation search
+    query_gsd: float | None = None  # metres per query pixel: the dense stage runs first (aeroloc.densemap)
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,7 @@ class Config:
     queries_identity: str = field(default="", compare=False)
     max_queries: int | None = None  # the pipeline keeps sample_queries(queries, max_queries)
     north_up: bool = False  # localize_queries(north_up=...)
+    query_gsd: float | None = None  # localize_queries(query_gsd=...)
 
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
@@ -121,6 +125,10 @@ class Config:
             parts.append({"max_queries": int(self.max_queries)})
         if self.north_up:  # likewise only when set
             parts.append({"north_up": True})
+        if self.query_gsd is not None:
+            from aeroloc.dense import DEFAULTS
+
+            parts.append({"query_gsd": float(self.query_gsd), "dense": DEFAULTS})
         if self.reranker:  # the re-ranker's effective settings: a changed default must not reuse old results
             from aeroloc.rerank import rerank_conf
 
@@ -135,6 +143,8 @@ class Config:
             parts.append(f"K={self.top_k}")
         if self.north_up:
             parts.append("north-up")
+        if self.query_gsd is not None:
+            parts.append(f"dense @ {self.query_gsd:g} m/px")
         return " · ".join(parts)
 
     def as_dict(self) -> dict:
@@ -232,10 +242,14 @@ class _Validator:
         out = []
         for i, q in enumerate(self.entries("queries")):
             where = f"queries[{i}]"
-            self.only_keys(where, q, {"name", "path", "map", "limit", "north_up"})
+            self.only_keys(where, q, {"name", "path", "map", "limit", "north_up", "query_gsd"})
             north_up = q.get("north_up", False)
             if not isinstance(north_up, bool):
                 self.fail(f"{where}.north_up", f"expected true or false, got {north_up!r}")
+            gsd = q.get("query_gsd")
+            if gsd is not None and (isinstance(gsd, bool) or not isinstance(gsd, (int, float)) or not gsd > 0
+                                    or gsd == float("inf")):
+                self.fail(f"{where}.query_gsd", f"expected metres per pixel > 0 (or left out), got {gsd!r}")
             limit = q.get("limit")
             if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
                 self.fail(f"{where}.limit", f"expected a number of queries >= 1 (or left out), got {limit!r}")
@@ -245,7 +259,8 @@ class _Validator:
                 map_name = next(iter(map_names))
             if map_name not in map_names:
                 self.fail(f"{where}.map", f"{map_name!r} is not one of the maps ({', '.join(sorted(map_names))})")
-            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up))
+            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up,
+                                 None if gsd is None else float(gsd)))
         self.unique("queries", [q.name for q in out])
         return out
 
@@ -393,7 +408,8 @@ def expand(exp: Experiment) -> list[Config]:
                            zoom=zoom, overlap=overlap, top_n=n, top_k=min(exp.top_k, n),
                            thresholds_m=exp.thresholds_m, device=exp.device, map_identity=ident(m.path),
                            queries_identity=ident(q.path), max_queries=q.limit,
-                           north_up=q.north_up and reranker is not None)  # retrieval ignores it
+                           north_up=q.north_up and reranker is not None,  # retrieval ignores both
+                           query_gsd=q.query_gsd if reranker is not None else None)
                 if c.key() not in keys:  # e.g. one queries file listed under two names: measure it once
                     keys.add(c.key())
                     out.append(c)

@@ -8,12 +8,14 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[3]
-# (name, map, queries, zoom, overlap, tile_m, north_up): the tile side should be close to the query footprint;
-# NAIP queries are north-up within ±15° (satellite imagery), the drone photos were taken at any heading
+# (name, map, queries, zoom, overlap, tile_m, north_up, query_gsd): the tile side should be close to the query
+# footprint. NAIP queries are north-up within ±15° and cut at the map's 5 m/px (satellite imagery: both known from
+# the image metadata), so they go through the dense stage first; the drone photos were taken at any heading and
+# at a height the demo does not use.
 DEMO_SETS = [
     ("naip-nd/dev (cross-season satellite)", "naip-nd/map_20200831.tif", "naip-nd/dev/queries.csv", 1.0, 0.5, None,
-     True),
-    ("toledo (DJI drone photos)", "toledo/orthomosaic.tif", "toledo/queries.csv", 1.0, 0.5, 200.0, False),
+     True, 5.0),
+    ("toledo (DJI drone photos)", "toledo/orthomosaic.tif", "toledo/queries.csv", 1.0, 0.5, 200.0, False, None),
 ]
 
 
@@ -47,7 +49,7 @@ def run(args) -> int:
     device = pick_device(args.device)
     rerank = args.rerank or DEFAULT_RERANKER
     lines = []
-    for name, map_rel, q_rel, zoom, overlap, tile_m, north_up in DEMO_SETS:
+    for name, map_rel, q_rel, zoom, overlap, tile_m, north_up, query_gsd in DEMO_SETS:
         print(f"\n== {name} ==")
         db_dir = out / Path(map_rel).parent.name
         t0 = time.perf_counter()
@@ -62,7 +64,7 @@ def run(args) -> int:
         csv_path = out / f"{db_dir.name}-results.csv"
         t0 = time.perf_counter()
         rows = localize_queries(db, queries, csv_path, args.top_n, 1, DEFAULT_METHOD, rerank, device,
-                                save_matches=out / f"{db_dir.name}-matches", north_up=north_up)
+                                save_matches=out / f"{db_dir.name}-matches", north_up=north_up, query_gsd=query_gsd)
         dt = time.perf_counter() - t0
         m = evaluate(read_results(csv_path), queries, db.tiles, (10, 25, 50, 100))
         before = evaluate([_retrieved(r) for r in rows], queries, db.tiles, (10, 25, 50, 100))

@@ -27,6 +27,10 @@ def add_arguments(p):
     p.add_argument("--refine-window", action="store_true",
                    help="re-match queries that reach beyond their best tile against the map window they cover: "
                         "more inliers and metres of accuracy, ~0.3 s more for those queries")
+    p.add_argument("--query-gsd", type=float, metavar="M",
+                   help="ground size of a query pixel in metres (satellite metadata, or height over ground x pixel "
+                        "angle): first match the query's structure densely over the map at headings within ±15° "
+                        "of north (aeroloc.dense); local features only when that finds no distinct match")
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
@@ -34,6 +38,7 @@ def add_arguments(p):
 
 def run(args) -> int:
     from aeroloc.database import Database
+    from aeroloc.densemap import check_query_gsd
     from aeroloc.device import pick_device
     from aeroloc.errors import AerolocError
     from aeroloc.queries import load_queries
@@ -45,6 +50,7 @@ def run(args) -> int:
     if args.rotations < 1:
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
     heading_conf(None, args.north_up, args.rotations)  # contradicting heading options fail before any work
+    check_query_gsd(args.query_gsd)
     rerank = None if args.rerank in ("none", "") else args.rerank
     if rerank:
         rerank_conf(rerank)  # an unknown name fails before the database and queries are read
@@ -53,7 +59,7 @@ def run(args) -> int:
     conf = {"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None
     rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
                             pick_device(args.device), rerank_conf=conf, save_matches=args.save_matches,
-                            rotations=args.rotations, north_up=args.north_up)
+                            rotations=args.rotations, north_up=args.north_up, query_gsd=args.query_gsd)
     n_loc = sum(1 for r in rows if r["lat"])
     print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
     return 0

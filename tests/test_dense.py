@@ -1,0 +1,176 @@
+"""The dense structural stage (aeroloc.dense, aeroloc.densemap) on real NAIP data: cross-season queries that local
+features cannot match are placed within metres, a crop of the map is found to a fraction of a pixel, and what is
+not on the map (or turned beyond the searched headings) gets no trusted answer."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from aeroloc import geo
+from aeroloc.dense import DEFAULTS, DenseRegion, orientation_features
+from aeroloc.densemap import DenseMapLocator, check_query_gsd
+from aeroloc.errors import AerolocError
+from aeroloc.images import read_image
+from aeroloc.maps import open_map
+from aeroloc.queries import load_queries
+
+# XFeat + LighterGlue found 4 and 5 verified matches on their true tiles (the lake of 2009 and the field of 2015
+# look nothing like 2020's); the dense search measured 4.2 m and 3.4 m, scores 0.45 and 0.39, ratios 2.3 and 1.9.
+HOPELESS_FOR_LOCAL = ["naip_20090818_n_013.jpg", "naip_20150926_n_000.jpg"]
+NAIP_GSD = 5.0  # the dev queries are cut at the map's resolution (data README: 700-1400 m over 140-280 px)
+
+
+@pytest.fixture(scope="module")
+def naip(naip_map):
+    return open_map(naip_map)
+
+
+@pytest.fixture(scope="module")
+def locator(naip):
+    return DenseMapLocator(naip, NAIP_GSD)
+
+
+@pytest.fixture(scope="module")
+def queries(naip_dev):
+    return {q.name: q for q in load_queries(naip_dev)}
+
+
+def _heading_gap(a: float, b: float) -> float:
+    return abs((a - b + 180) % 360 - 180)
+
+
+def test_features_ignore_contrast_polarity_and_are_unit_vectors(naip):
+    """A shoreline is a shoreline whether the water is darker or lighter than the land: the negative of an image
+    has the same features. Textured pixels carry unit-norm vectors, so bright and dull years weigh the same."""
+    rgb, _ = naip.read(300, 200, 160, 120)
+    f = orientation_features(rgb)
+    assert f.shape == (120, 160, DEFAULTS["bins"]) and f.dtype == np.float32
+    neg = orientation_features(255 - rgb)  # equal up to the grey conversion rounding to whole levels
+    assert np.abs(neg - f).max() < 0.02 and np.median(np.abs(neg - f)) < 1e-3
+    norms = np.linalg.norm(f, axis=-1)
+    assert np.median(norms) > 0.95 and norms.max() < 1.0 + 1e-5
+    dull = (rgb.astype(np.float32) * 0.3 + 40).astype(np.uint8)
+    assert np.median(np.abs(orientation_features(dull) - f)) < 0.05
+
+
+@pytest.mark.parametrize("angle", [0.0, 10.0])
+def test_a_crop_of_the_map_is_found_to_a_pixel_and_its_heading_to_a_few_degrees(naip, angle):
+    whole, valid = naip.read(0, 0, naip.width, naip.height)
+    region = DenseRegion(whole, valid)
+    cx, cy, side = 512.0, 371.0, 170  # the crop's centre (pixel edges) and size
+    crop = whole[int(cy - side / 2):int(cy + side / 2), int(cx - side / 2):int(cx + side / 2)]
+    if angle:  # the ground turned 10° clockwise, as in a NAIP query of heading_deg 10
+        big = whole[int(cy - side):int(cy + side), int(cx - side):int(cx + side)]
+        R = cv2.getRotationMatrix2D((side - 0.5, side - 0.5), -angle, 1.0)
+        crop = cv2.warpAffine(big, R, (2 * side, 2 * side))[side // 2: side // 2 + side, side // 2: side // 2 + side]
+    m = region.locate(crop)
+    assert m is not None and m.trusted(region.conf)
+    assert np.hypot(m.x - cx, m.y - cy) < (0.5 if not angle else 1.5), (m.x, m.y)
+    assert abs(m.angle - angle) <= 3.75
+    assert m.ratio > 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", HOPELESS_FOR_LOCAL)
+def test_cross_season_queries_local_features_cannot_match_are_placed_within_metres(locator, queries, name):
+    q = queries[name]
+    d = locator.locate(read_image(q.path), [])
+    assert d is not None, f"{name}: no trusted dense match"
+    err = geo.geodesic_distance(q.lat, q.lon, d.lat, d.lon)
+    assert err < 10.0, f"{name}: {err:.1f} m from the truth"
+    assert _heading_gap(d.match.angle, q.heading_deg) < 5.0, (d.match.angle, q.heading_deg)
+    assert d.status().startswith("localized (dense")
+
+
+@pytest.mark.slow
+def test_no_trusted_answer_when_the_true_place_is_masked_turned_or_elsewhere(naip, locator, queries, data_dir):
+    """Three ways of not being on the searched map: the query's own area is no-data, the query is turned 90°
+    (beyond the ±15° searched), or it is a drone photo of another city."""
+    q = queries[HOPELESS_FOR_LOCAL[0]]
+    image = read_image(q.path)
+    whole, valid = naip.read(0, 0, naip.width, naip.height)
+    col, row = naip.latlon_to_pixel(q.lat, q.lon)
+    yy, xx = np.ogrid[:naip.height, :naip.width]
+    masked = valid & ((yy - row) ** 2 + (xx - col) ** 2 >= (image.shape[0] / 2) ** 2)
+    m = DenseRegion(whole, masked).locate(image)
+    assert m is not None and not m.trusted(DEFAULTS), (m.score, m.ratio)
+    assert locator.locate(np.ascontiguousarray(np.rot90(image)), []) is None
+    toledo = read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG")
+    elsewhere = DenseMapLocator(naip, 2.5)  # its 1200x900 px as if at 2.5 m/px: 600x450 px on the 5 m map
+    assert elsewhere.locate(toledo, []) is None
+
+
+def test_query_resolution_must_be_a_positive_number():
+    assert check_query_gsd(None) is None and check_query_gsd("2.5") == 2.5
+    for bad in (0, -1, "abc", float("nan"), float("inf")):
+        with pytest.raises(AerolocError, match="metres per pixel"):
+            check_query_gsd(bad)
+
+
+def test_working_resolution_is_the_coarser_of_query_and_map(naip):
+    fine_query = DenseMapLocator(naip, 0.5)  # a drone photo at 0.5 m/px on the 5 m map: the query is shrunk
+    assert fine_query.map_factor == pytest.approx(1.0) and fine_query.query_factor == pytest.approx(0.1, rel=1e-3)
+    coarse_query = DenseMapLocator(naip, 10.0)  # a 10 m/px query: the map is shrunk instead
+    assert coarse_query.map_factor == pytest.approx(0.5, rel=1e-3) and coarse_query.query_factor == 1.0
+
+
+def test_a_large_map_is_searched_over_the_best_tiles_that_fit(naip):
+    """When the whole map exceeds the pixel budget, the region is the bounding box of the best-ranked tiles that
+    fits it, and the position still comes back in map pixels."""
+    from aeroloc.tiling import TileGrid
+
+    tiles = list(TileGrid(naip, 1.0, 0.5))
+    a, b = tiles[5], tiles[6]  # neighbours along a row, half overlapping
+    box = (min(a.col, b.col), min(a.row, b.row), max(a.col + a.width, b.col + b.width),
+           max(a.row + a.height, b.row + b.height))
+    one = DenseMapLocator(naip, NAIP_GSD, max_region_px=a.width * a.height)  # room for one tile only
+    region, col0, row0 = one.region([a, b])
+    assert (col0, row0) == (a.col, a.row) and region.shape == (a.height, a.width)
+    two = DenseMapLocator(naip, NAIP_GSD, max_region_px=(box[2] - box[0]) * (box[3] - box[1]))
+    region, col0, row0 = two.region([a, b])
+    assert (col0, row0) == box[:2] and region.shape == (box[3] - box[1], box[2] - box[0])
+    assert one.region([]) is None
+
+
+@pytest.mark.slow
+def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_features(naip_db, queries, data_dir,
+                                                                                     tmp_path):
+    """With the queries' resolution given, a query that local features miss is localized by the dense stage (its
+    re-ranked tiles start with one that contains it), and a photo from elsewhere still ends "not localized" after
+    the local-feature fallback."""
+    from aeroloc.database import Database
+    from aeroloc.localize import Localizer
+    from aeroloc.metrics import tile_contains
+
+    db = Database(naip_db)
+    loc = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=NAIP_GSD)
+    q = queries[HOPELESS_FOR_LOCAL[0]]
+    res = loc(q.name, read_image(q.path), top_n=5)
+    assert res.status.startswith("localized (dense"), res.status
+    assert geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 10.0
+    assert tile_contains(db.by_id[res.top_tiles[0]], q.lat, q.lon) and len(res.top_tiles) == 1
+    assert res.times_ms["align"] > 0 and res.times_ms.get("local_features", 0) == 0
+    # a finished run without the resolution is not reused for one with it (the resolution is in the run's key)
+    from aeroloc.localize import localize_queries
+
+    out = tmp_path / "r.csv"
+    kw = dict(top_n=5, method="xfeat-vlad", rerank="xfeat-lighterglue", device="cpu", progress=False, north_up=True)
+    assert localize_queries(db, [q], out, **kw)[0]["status"].startswith("not localized")
+    assert localize_queries(db, [q], out, query_gsd=NAIP_GSD, **kw)[0]["status"].startswith("localized (dense")
+    toledo = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=2.5)
+    res = toledo("toledo", read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG"), top_n=5)
+    assert res.status.startswith("not localized") and np.isnan(res.lat), res.status
+
+
+def test_the_cli_refuses_a_bad_query_resolution_before_any_work(naip_dev, tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "r.csv"
+    p = subprocess.run([sys.executable, "-m", "aeroloc.cli", "localize", str(tmp_path), str(naip_dev),
+                        "--query-gsd", "-5", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "Traceback" not in p.stderr + p.stdout
+    assert "metres per pixel" in p.stderr and "-5" in p.stderr
+    assert not out.exists()

@@ -217,7 +217,7 @@ def test_paper_experiments_validate():
         pytest.skip(f"real data not found at {data}")
     from aeroloc.models.retrieval import DEFAULT_METHOD
 
-    for name in ("paper-zoom", "paper-overlap", "paper-rerank", "retrieval-sweep"):
+    for name in ("paper-zoom", "paper-overlap", "paper-rerank", "retrieval-sweep", "dense-stage"):
         exp = load_experiment(repo / "experiments" / f"{name}.yaml")
         assert exp.maps[0].path == (data / "naip-nd" / "map_20200831.tif")
         assert DEFAULT_METHOD in {c.method for c in expand(exp)}  # the default method is always measured
@@ -226,6 +226,10 @@ def test_paper_experiments_validate():
     rerank = load_experiment(repo / "experiments" / "paper-rerank.yaml")
     assert set(rerank.rerankers) == {"xfeat-lighterglue", "xfeat-mnn", "aliked-lightglue", "disk-lightglue", "sift"}
     assert rerank.top_n == (20, 100)
+    dense = expand(load_experiment(repo / "experiments" / "dense-stage.yaml"))
+    assert {(c.queries_name, c.query_gsd, c.north_up) for c in dense} == {
+        ("naip-nd/dev", None, True), ("naip-nd/dev+dense", 5.0, True),
+        ("naip-nd/dev-rotated", None, False), ("naip-nd/dev-rotated+dense", 5.0, False)}
 
 
 # --- results store ------------------------------------------------------------------------------------------

@@ -38,6 +38,7 @@ def queries(naip_dev):
 
 
 def _heading_gap(a: float, b: float) -> float:
+    """Degrees between two angles; NAIP's heading_deg measures the turn of the content that the match reports."""
     return abs((a - b + 180) % 360 - 180)
 
 
@@ -70,7 +71,19 @@ def test_a_crop_of_the_map_is_found_to_a_pixel_and_its_heading_to_a_few_degrees(
     assert np.hypot(m.x - cx, m.y - cy) < (0.5 if not angle else 1.5), (m.x, m.y)
     assert abs(m.angle - angle) <= 3.75
     assert m.ratio > 2
+    # the footprint drawn for --save-matches: the crop's corners on the map, in map pixels
+    from aeroloc.densemap import DenseResult
 
+    corners = DenseResult(m, m.x, m.y, 0.0, 0.0).footprint((side, side), 1.0, 1.0)
+    edge = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float64)
+    if angle:  # the crop's corners taken back through the warp that made it
+        inv = cv2.invertAffineTransform(R)
+        edge = (edge + side // 2) @ inv[:, :2].T + inv[:, 2] + [cx - side, cy - side]
+    else:
+        edge = edge + [cx - side / 2, cy - side / 2]
+    # exact but for the heading's quantisation (steps of 3.75°), which moves the corners by radius x angle
+    tol = 1.0 + side / np.sqrt(2) * abs(np.radians(m.angle - angle))
+    assert np.abs(corners - edge).max() < tol, (corners, edge)
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", HOPELESS_FOR_LOCAL)
@@ -100,6 +113,32 @@ def test_no_trusted_answer_when_the_true_place_is_masked_turned_or_elsewhere(nai
     toledo = read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG")
     elsewhere = DenseMapLocator(naip, 2.5)  # its 1200x900 px as if at 2.5 m/px: 600x450 px on the 5 m map
     assert elsewhere.locate(toledo, []) is None
+
+
+def test_headings_searched_follow_what_is_known_of_the_heading():
+    from aeroloc.dense import ANY_HEADING, heading_angles
+
+    assert heading_angles(None, True)["angles"] == DEFAULTS["angles"]
+    assert heading_angles(None, False)["angles"] == ANY_HEADING
+    assert len(ANY_HEADING) == 48 and ANY_HEADING[0] == -180.0 and np.allclose(np.diff(ANY_HEADING), 7.5)
+    assert heading_angles({"angles": (0.0,)}, False)["angles"] == (0.0,)  # chosen headings are kept
+    assert heading_angles({"min_ratio": 2.0}, True)["min_ratio"] == 2.0
+
+
+@pytest.mark.slow
+def test_a_query_at_an_unknown_heading_is_found_by_the_full_circle(naip, queries, naip_dev):
+    """A dev-rotated query turned far from north (beyond the ±15° of a north-up search) is placed by the search
+    over every heading, with its heading."""
+    from aeroloc.dense import heading_angles
+
+    rotated = {q.name: q for q in load_queries(naip_dev.parent.parent / "dev-rotated" / "queries.csv")}
+    q = rotated["naip_20090818_r_004.jpg"]  # heading 246°; a 2009 image (measured: 4.6 m, ratio 3.2)
+    image = read_image(q.path)
+    assert DenseMapLocator(naip, NAIP_GSD).locate(image, []) is None  # north-up search: nothing distinct
+    d = DenseMapLocator(naip, NAIP_GSD, heading_angles(None, north_up=False)).locate(image, [])
+    assert d is not None, f"{q.name} (heading {q.heading_deg}°): no trusted match"
+    assert geo.geodesic_distance(q.lat, q.lon, d.lat, d.lon) < 15.0
+    assert _heading_gap(d.match.angle, q.heading_deg) < 6.0, (d.match.angle, q.heading_deg)
 
 
 def test_query_resolution_must_be_a_positive_number():
@@ -158,7 +197,11 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     out = tmp_path / "r.csv"
     kw = dict(top_n=5, method="xfeat-vlad", rerank="xfeat-lighterglue", device="cpu", progress=False, north_up=True)
     assert localize_queries(db, [q], out, **kw)[0]["status"].startswith("not localized")
-    assert localize_queries(db, [q], out, query_gsd=NAIP_GSD, **kw)[0]["status"].startswith("localized (dense")
+    shots = tmp_path / "matches"
+    row = localize_queries(db, [q], out, query_gsd=NAIP_GSD, save_matches=shots, **kw)[0]
+    assert row["status"].startswith("localized (dense")
+    shot = read_image(shots / (q.name.rsplit(".", 1)[0] + ".jpg"))  # query | map with the footprint outlined
+    assert shot.shape[0] == 480 and shot.shape[1] > 700
     toledo = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=2.5)
     res = toledo("toledo", read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG"), top_n=5)
     assert res.status.startswith("not localized") and np.isnan(res.lat), res.status

@@ -32,15 +32,24 @@ def check_query_gsd(query_gsd) -> float | None:
 
 @dataclass
 class DenseResult:
-    match: DenseMatch  # match.angle is the query's heading, degrees clockwise from north
+    match: DenseMatch  # match.angle: degrees the query's content is turned clockwise from the north-up map
     col: float  # query centre in map pixels
     row: float
     lat: float
     lon: float
 
+    def footprint(self, query_size: tuple[int, int], query_gsd: float, map_gsd: float) -> np.ndarray:
+        """The query's four corners (top-left, top-right, bottom-right, bottom-left) in map pixels."""
+        w, h = query_size
+        k = query_gsd / map_gsd  # query px -> map px
+        t = np.radians(self.match.angle)  # query offsets -> map offsets: OpenCV's rotation by the matched angle
+        rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
+        corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]], np.float64) / 2 * k
+        return corners @ rot.T + [self.col, self.row]
+
     def status(self) -> str:
         return f"localized (dense: score {self.match.score:.2f}, ratio {self.match.ratio:.2f}, " \
-               f"heading {self.match.angle:+.1f}°)"
+               f"turned {self.match.angle:+.1f}°)"
 
 
 def _resize(image: np.ndarray, factor: float, nearest: bool = False) -> np.ndarray:
@@ -55,7 +64,7 @@ class DenseMapLocator:
         self.map = map_
         self.conf = conf
         self.query_gsd = check_query_gsd(query_gsd)
-        map_gsd = map_.resolution_m
+        self.map_gsd = map_gsd = map_.resolution_m
         work = max(self.query_gsd, map_gsd)
         self.map_factor = map_gsd / work  # map px -> working px (<= 1)
         self.query_factor = self.query_gsd / work

@@ -38,6 +38,7 @@ class Localization:
     retrieved: list[str] = field(default_factory=list)
     times_ms: dict = field(default_factory=dict)
     best = None  # rerank.Candidate, for visualisation
+    dense = None  # densemap.DenseResult, for visualisation
 
     def row(self) -> dict:
         """The results-CSV row, all strings: a fresh, resumed or cached run returns equal rows."""
@@ -82,7 +83,7 @@ class Localizer:
             dense_ms = (time.perf_counter() - t0) * 1000
             if d is not None:
                 out.times_ms["align"] = dense_ms
-                out.lat, out.lon, out.status = d.lat, d.lon, d.status()
+                out.lat, out.lon, out.status, out.dense = d.lat, d.lon, d.status(), d
                 out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[:top_k or None]
                 return out
         if self.reranker is None:  # retrieval only: best tile centre, no alignment
@@ -188,14 +189,16 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
 
     ``rotations`` > 1 retrieves with the query at that many headings; ``north_up`` skips the re-ranker's 90°
     rotation search (see :func:`heading_conf`); ``query_gsd`` (metres per query pixel) first tries the dense
-    structural stage (aeroloc.dense), local features only when it finds no distinct match."""
-    from aeroloc.dense import DEFAULTS as DENSE_DEFAULTS
+    structural stage (aeroloc.dense: headings around north when ``north_up``, else all), local features only when
+    it finds no distinct match."""
+    from aeroloc.dense import heading_angles
     from aeroloc.densemap import check_query_gsd
 
     from tqdm import tqdm
 
     rotations = check_rotations(rotations)  # before any file is touched
     query_gsd = check_query_gsd(query_gsd)
+    dense_conf = heading_angles(dense_conf, north_up) if query_gsd is not None else None
     rerank_conf = heading_conf(rerank_conf, north_up, rotations)
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
@@ -210,8 +213,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
                             query_scale=QUERY_SCALE,
                             # rotations only when searched, so the signature of an upright run stays as it was
                             **({"rotations": rotations} if rotations != 1 else {}),
-                            **({"query_gsd": query_gsd, "dense": {**DENSE_DEFAULTS, **(dense_conf or {})}}
-                               if query_gsd is not None else {}))
+                            **({"query_gsd": query_gsd, "dense": dense_conf} if query_gsd is not None else {}))
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:
@@ -240,6 +242,8 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
                 res = localizer(q.name, image, top_n, top_k)
                 if save_matches and res.best is not None:
                     save_match_image(Path(save_matches) / f"{Path(q.name).stem}.jpg", image, db, res)
+                elif save_matches and res.dense is not None:
+                    save_dense_image(Path(save_matches) / f"{Path(q.name).stem}.jpg", image, localizer.dense, res)
             row = res.row()
             w.writerow(row)
             f.flush()
@@ -248,6 +252,32 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
     done_sig.write_text(sig)
     sig_path.unlink(missing_ok=True)
     return rows
+
+
+def save_dense_image(path: Path, image: np.ndarray, dense, res: Localization) -> None:
+    """Query | the map around its dense position (both 480 px high), the query's footprint outlined in green."""
+    import cv2
+
+    from aeroloc.images import write_image
+
+    m = dense.map
+    xy = res.dense.footprint((image.shape[1], image.shape[0]), dense.query_gsd, dense.map_gsd)
+    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
+    pad = 0.5 * max(x1 - x0, y1 - y0)
+    c0, r0 = max(0, int(x0 - pad)), max(0, int(y0 - pad))
+    c1, r1 = min(m.width, int(np.ceil(x1 + pad))), min(m.height, int(np.ceil(y1 + pad)))
+    crop, _ = m.read(c0, r0, c1 - c0, r1 - r0)
+    H0 = 480
+    sq, sm = H0 / image.shape[0], H0 / crop.shape[0]
+    a = cv2.resize(image, (round(image.shape[1] * sq), H0))
+    b = cv2.resize(crop, (round(crop.shape[1] * sm), H0)).copy()
+    poly = ((xy - [c0, r0]) * sm).round().astype(np.int32)
+    cv2.polylines(b, [poly], True, (0, 220, 0), 2, cv2.LINE_AA)
+    cv2.line(b, tuple(poly[0]), tuple(poly[1]), (255, 255, 0), 3, cv2.LINE_AA)  # the query's top edge
+    canvas = np.concatenate([a, b], 1)
+    cv2.putText(canvas, f"{res.name}: {res.status}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 0), 2,
+                cv2.LINE_AA)
+    write_image(path, canvas, quality=85)
 
 
 def save_match_image(path: Path, image: np.ndarray, db: Database, res: Localization) -> None:

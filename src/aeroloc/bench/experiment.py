@@ -126,9 +126,9 @@ class Config:
         if self.north_up:  # likewise only when set
             parts.append({"north_up": True})
         if self.query_gsd is not None:
-            from aeroloc.dense import DEFAULTS
+            from aeroloc.dense import heading_angles
 
-            parts.append({"query_gsd": float(self.query_gsd), "dense": DEFAULTS})
+            parts.append({"query_gsd": float(self.query_gsd), "dense": heading_angles(None, self.north_up)})
         if self.reranker:  # the re-ranker's effective settings: a changed default must not reuse old results
             from aeroloc.rerank import rerank_conf
 

@@ -29,8 +29,9 @@ def add_arguments(p):
                         "more inliers and metres of accuracy, ~0.3 s more for those queries")
     p.add_argument("--query-gsd", type=float, metavar="M",
                    help="ground size of a query pixel in metres (satellite metadata, or height over ground x pixel "
-                        "angle): first match the query's structure densely over the map at headings within ±15° "
-                        "of north (aeroloc.dense); local features only when that finds no distinct match")
+                        "angle): first match the query's structure densely over the map (aeroloc.dense), at "
+                        "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
+                        "(~2 s); local features only when that finds no distinct match")
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")

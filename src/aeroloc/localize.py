@@ -146,7 +146,8 @@ class Localizer:
         inside = sorted((t for t in self.db.tiles if t.col <= col <= t.col + t.width and t.row <= row <= t.row + t.height),
                         key=lambda t: (t.col + t.width / 2 - col) ** 2 + (t.row + t.height / 2 - row) ** 2)
         ids = [t.id for t in inside]
-        return ids + [t for t in retrieved if t not in set(ids)]
+        taken = set(ids)
+        return ids + [t for t in retrieved if t not in taken]
 
     @cached_property
     def dense(self):

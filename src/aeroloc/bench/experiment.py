@@ -247,9 +247,15 @@ class _Validator:
             if not isinstance(north_up, bool):
                 self.fail(f"{where}.north_up", f"expected true or false, got {north_up!r}")
             gsd = q.get("query_gsd")
-            if gsd is not None and (isinstance(gsd, bool) or not isinstance(gsd, (int, float)) or not gsd > 0
-                                    or gsd == float("inf")):
-                self.fail(f"{where}.query_gsd", f"expected metres per pixel > 0 (or left out), got {gsd!r}")
+            if gsd is not None:
+                from aeroloc.densemap import check_query_gsd
+
+                try:
+                    if isinstance(gsd, bool) or not isinstance(gsd, (int, float)):
+                        raise AerolocError("not a number")
+                    gsd = check_query_gsd(gsd)
+                except AerolocError:
+                    self.fail(f"{where}.query_gsd", f"expected metres per pixel > 0 (or left out), got {gsd!r}")
             limit = q.get("limit")
             if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
                 self.fail(f"{where}.limit", f"expected a number of queries >= 1 (or left out), got {limit!r}")
@@ -259,8 +265,7 @@ class _Validator:
                 map_name = next(iter(map_names))
             if map_name not in map_names:
                 self.fail(f"{where}.map", f"{map_name!r} is not one of the maps ({', '.join(sorted(map_names))})")
-            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up,
-                                 None if gsd is None else float(gsd)))
+            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up, gsd))
         self.unique("queries", [q.name for q in out])
         return out
 

@@ -217,3 +217,22 @@ def test_the_cli_refuses_a_bad_query_resolution_before_any_work(naip_dev, tmp_pa
     assert p.returncode == 2 and "Traceback" not in p.stderr + p.stdout
     assert "metres per pixel" in p.stderr and "-5" in p.stderr
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(naip_map, naip_dev, tmp_path):
+    """aeroloc.pipeline end to end on 6 NAIP queries (query_gsd set): every one placed by the dense stage within
+    15 m, and the total time is the queries' own, also when the finished results file is reused."""
+    import types
+
+    from aeroloc.pipeline import run_config
+
+    cfg = types.SimpleNamespace(map_path=str(naip_map), tile_m=None, queries_path=str(naip_dev), method="xfeat-vlad",
+                                reranker="xfeat-lighterglue", zoom=2.0, overlap=0.0, top_n=3, top_k=1,
+                                thresholds_m=(10, 25), device="cpu", max_queries=6, north_up=True, query_gsd=NAIP_GSD)
+    first = run_config(cfg, tmp_path)
+    assert all(r["status"].startswith("localized (dense") for r in first["rows"]), [r["status"] for r in first["rows"]]
+    assert max(r["error_m"] for r in first["rows"]) < 15.0
+    again = run_config(cfg, tmp_path)  # the results file is reused: no query runs again
+    assert again["timing"]["localize_total_s"] == pytest.approx(first["timing"]["localize_total_s"])
+    assert first["timing"]["localize_total_s"] == pytest.approx(first["timing"]["total_ms_per_query"] * 6 / 1000)

@@ -302,8 +302,8 @@ def time_table(rows: list[dict], dataset: str) -> Table | None:
     for j in range(len(columns)):
         mark_best([c[j] for c in cols], higher=False)
     return Table("time", f"Time per stage (ms per query) — {dataset}", [n for _, n in labels], columns, out_rows,
-                 note="Same clock (perf_counter) for every stage; total s = localizing all queries (database build "
-                      "excluded). Bold: fastest per column.")
+                 note="Same clock (perf_counter) for every stage; total s = the queries' totals summed (database "
+                      "build excluded). Bold: fastest per column.")
 
 
 def memory_table(rows: list[dict], dataset: str) -> Table | None:

@@ -27,11 +27,12 @@ DEFAULTS = {
     "sigma": 1.5,  # px: spatial smoothing of each orientation channel
     "angles": (-15.0, -7.5, 0.0, 7.5, 15.0),  # turns of the query searched, degrees (see DenseMatch.angle)
     # acceptance, measured on NAIP: the 120 dev queries scored >= 0.24 with ratios >= 1.27 (118 of them >= 1.4),
-    # all placed within 17 m; wrong answers (each dev and dev-rotated query searched with its true area masked, and
+    # all placed within 10 m; wrong answers (each dev and dev-rotated query searched with its true area masked, and
     # the 31 dev-rotated queries turned beyond the searched headings) scored <= 0.25 with ratios <= 1.33
     "min_score": 0.2,
     "min_ratio": 1.4,
     "exclusion": 0.5,  # the second peak is sought this many query sides away from the best one
+    "scales": (0.9, 0.95, 1.0, 1.05, 1.1),  # refined around the peak: the query resolution's uncertainty
 }
 
 
@@ -56,6 +57,7 @@ class DenseMatch:
     angle: float  # degrees the query's content is turned clockwise from the map (undone by OpenCV's rotation by it)
     score: float
     ratio: float
+    scale: float = 1.0  # the query's size on the map relative to the given resolution (local refinement)
 
     def trusted(self, conf: dict) -> bool:
         return self.score >= conf["min_score"] and self.ratio >= conf["min_ratio"]
@@ -171,29 +173,46 @@ class DenseRegion:
 
     def locate(self, query: np.ndarray) -> DenseMatch | None:
         """Where ``query`` (RGB at the region's ground resolution) lies: every heading of ``conf["angles"]`` at
-        every position (score and distinctness), then the best heading refined by ±half an angle step around the
-        peak. None when the query does not fit in the region."""
+        every position (score and distinctness), then the peak refined locally, first over ±half an angle step,
+        then over the scales of ``conf["scales"]`` (a query resolution known to a few per cent: off by 10 %, the
+        global peak still lands on the right place but its centre 25-60 m off). None when the query does not
+        fit."""
         conf = self.conf
         best = _search(self.correlator, query, conf["angles"], conf, self.valid)
         if best is None:
             return None
         step = _angle_step(conf["angles"])
+        found = best
         for a in (best.angle - step / 2, best.angle + step / 2) if step else ():
-            q = _rotated_inner(query, a)
-            h, w = q.shape[:2]
-            # every placement whose centre is within 2 px of the peak
-            x0, y0 = max(0, int(round(best.x - w / 2)) - 2), max(0, int(round(best.y - h / 2)) - 2)
-            x1, y1 = min(self.shape[1], x0 + w + 4), min(self.shape[0], y0 + h + 4)
-            res = correlate(self.features[y0:y1, x0:x1], orientation_features(q, conf))
-            if res is None:
-                continue
-            if self.valid is not None:
-                res = np.where(_placement_valid(self.valid[y0:y1, x0:x1], (h, w)), res, -1.0)
-            y, x = np.unravel_index(int(res.argmax()), res.shape)
-            if res[y, x] > best.score:
-                sy, sx = _subpixel(res, y, x)
-                best = DenseMatch(x0 + sx + w / 2, y0 + sy + h / 2, a, float(res[y, x]), best.ratio)
-        return best
+            found = self._refine(query, found, best, a, 1.0)
+        turned = found.angle
+        for sc in conf["scales"]:
+            if sc != 1.0:
+                found = self._refine(query, found, best, turned, sc)
+        return found
+
+    def _refine(self, query: np.ndarray, found: DenseMatch, peak: DenseMatch, angle: float,
+                scale: float) -> DenseMatch:
+        """``found``, or the query at ``angle`` and ``scale`` placed near ``peak`` if that scores higher."""
+        q = query if scale == 1.0 else cv2.resize(
+            query, (max(1, round(query.shape[1] * scale)), max(1, round(query.shape[0] * scale))),
+            interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+        q = _rotated_inner(q, angle)
+        h, w = q.shape[:2]
+        # every placement whose centre is within m px of the peak: 2 px, plus what the scale change moves
+        m = 2 + int(np.ceil(abs(1 - scale) * max(h, w) / 2))
+        x0, y0 = max(0, int(round(peak.x - w / 2)) - m), max(0, int(round(peak.y - h / 2)) - m)
+        x1, y1 = min(self.shape[1], x0 + w + 2 * m), min(self.shape[0], y0 + h + 2 * m)
+        res = correlate(self.features[y0:y1, x0:x1], orientation_features(q, self.conf))
+        if res is None:
+            return found
+        if self.valid is not None:
+            res = np.where(_placement_valid(self.valid[y0:y1, x0:x1], (h, w)), res, -1.0)
+        y, x = np.unravel_index(int(res.argmax()), res.shape)
+        if res[y, x] <= found.score:
+            return found
+        sy, sx = _subpixel(res, y, x)
+        return DenseMatch(x0 + sx + w / 2, y0 + sy + h / 2, angle, float(res[y, x]), peak.ratio, scale)
 
 
 def _angle_step(angles) -> float:

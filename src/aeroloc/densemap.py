@@ -41,7 +41,7 @@ class DenseResult:
     def footprint(self, query_size: tuple[int, int], query_gsd: float, map_gsd: float) -> np.ndarray:
         """The query's four corners (top-left, top-right, bottom-right, bottom-left) in map pixels."""
         w, h = query_size
-        k = query_gsd / map_gsd  # query px -> map px
+        k = query_gsd * self.match.scale / map_gsd  # query px -> map px
         t = np.radians(self.match.angle)  # query offsets -> map offsets: OpenCV's rotation by the matched angle
         rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
         corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]], np.float64) / 2 * k
@@ -49,7 +49,7 @@ class DenseResult:
 
     def status(self) -> str:
         return f"localized (dense: score {self.match.score:.2f}, ratio {self.match.ratio:.2f}, " \
-               f"turned {self.match.angle:+.1f}°)"
+               f"turned {self.match.angle:+.1f}°, scale {self.match.scale:.2f})"
 
 
 def _resize(image: np.ndarray, factor: float, nearest: bool = False) -> np.ndarray:

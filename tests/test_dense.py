@@ -220,9 +220,10 @@ def test_the_cli_refuses_a_bad_query_resolution_before_any_work(naip_dev, tmp_pa
 
 
 @pytest.mark.slow
-def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(naip_map, naip_dev, tmp_path):
+def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(naip_map, naip_dev, tmp_path,
+                                                                                monkeypatch):
     """aeroloc.pipeline end to end on 6 NAIP queries (query_gsd set): every one placed by the dense stage within
-    15 m, and the total time is the queries' own, also when the finished results file is reused."""
+    15 m, and the total time and peak memory are the localizing run's, also when its results file is reused."""
     import types
 
     from aeroloc.pipeline import run_config
@@ -233,8 +234,13 @@ def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(
     first = run_config(cfg, tmp_path)
     assert all(r["status"].startswith("localized (dense") for r in first["rows"]), [r["status"] for r in first["rows"]]
     assert max(r["error_m"] for r in first["rows"]) < 15.0
+    import aeroloc.pipeline
+
+    monkeypatch.setattr(aeroloc.pipeline, "peak_rss_mb", lambda: 1e9)  # this process: not the localizing run
     again = run_config(cfg, tmp_path)  # the results file is reused: no query runs again
     assert again["timing"]["localize_total_s"] == pytest.approx(first["timing"]["localize_total_s"])
+    # and so is the memory of the run that localized, not this process's
+    assert again["memory"]["peak_rss_mb"] == first["memory"]["peak_rss_mb"] < 1e9
     assert first["timing"]["localize_total_s"] == pytest.approx(first["timing"]["total_ms_per_query"] * 6 / 1000)
 
 

@@ -15,6 +15,19 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _localize_peak_rss(out_csv: Path, reused: bool) -> float | None:
+    """The peak RSS of the process that localized ``out_csv``: measured now and kept beside the results, or read
+    back when the finished results were reused (this process never held that run's memory); None if unknown."""
+    import json
+
+    side = out_csv.with_name(out_csv.name + ".memory.json")
+    if reused:
+        return json.loads(side.read_text()).get("peak_rss_mb") if side.is_file() else None
+    peak = peak_rss_mb()
+    side.write_text(json.dumps({"peak_rss_mb": peak}))
+    return peak
+
+
 def _match_image(folder, name):
     if folder is None:
         return None
@@ -61,9 +74,11 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
     stem = f"{cfg.method}-{cfg.reranker or 'none'}-n{cfg.top_n}-k{cfg.top_k}-{key}"
     out_csv = folder / "results" / f"{stem}.csv"
     matches_dir = folder / "results" / f"{stem}-matches" if cfg.reranker else None
+    stamp = out_csv.stat().st_mtime_ns if out_csv.is_file() else None
     rows = localize_queries(db, queries, out_csv, cfg.top_n, cfg.top_k, cfg.method, cfg.reranker, device,
                             save_matches=matches_dir, progress=progress, north_up=north_up and bool(cfg.reranker),
                             query_gsd=query_gsd)
+    peak = _localize_peak_rss(out_csv, reused=stamp == out_csv.stat().st_mtime_ns)
     results = read_results(out_csv)
     metrics = evaluate(results, queries, db.tiles, tuple(cfg.thresholds_m))
     # recall of the retrieval stage alone (before re-ranking), from the retrieved lists
@@ -91,6 +106,6 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
     memory = {"descriptor_bytes_per_tile": grep["bytes_per_tile"],
               "local_bytes_per_tile": lrep["bytes_per_tile"] if lrep else 0.0,
               "index_bytes": (folder / grep["dir"] / "index.faiss").stat().st_size,
-              "tile_image_bytes": tinfo.get("image_bytes"), "peak_rss_mb": peak_rss_mb()}
+              "tile_image_bytes": tinfo.get("image_bytes"), "peak_rss_mb": peak}
     return {"metrics": metrics, "rows": out_rows, "timing": timing, "memory": memory,
             "n_tiles": len(db.tiles), "n_queries": len(queries), "db": str(folder), "results_csv": str(out_csv)}

@@ -65,7 +65,7 @@ class Localizer:
         m = db.info["map"]
         self.map_size = (int(m["width"]), int(m["height"]))
         self.query_gsd = check_query_gsd(query_gsd)  # metres per query pixel: turns the dense stage on
-        self.dense_conf = dense_conf
+        self.dense_conf = dense_conf  # aeroloc.dense settings (default headings ±15°: see dense.heading_angles)
 
     def __call__(self, name: str, image: np.ndarray, top_n: int = 20, top_k: int = 1) -> Localization:
         from aeroloc.device import single_threaded_blas

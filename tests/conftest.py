@@ -47,7 +47,7 @@ NAIP_DB_ZOOM, NAIP_DB_OVERLAP = 1.0, 0.5
 @pytest.fixture(scope="session")
 def naip_tiles_db(naip_map, tmp_path_factory) -> Path:
     """Tiles only (tiles.csv, tiles.json, images/) of the pipeline tests' NAIP database."""
-    from aeroloc.tiling import write_tiles
+    from aeroloc.maps.tiling import write_tiles
 
     folder = tmp_path_factory.mktemp("naip-db")
     write_tiles(naip_map, folder, NAIP_DB_ZOOM, NAIP_DB_OVERLAP, progress=False)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
-from aeroloc.align import align
-from aeroloc.tiling import load_info, load_tiles
+from aeroloc.localization.alignment import align
+from aeroloc.maps.tiling import load_info, load_tiles
 
 QUERY = (200, 150)  # query image (w, h): centre (100, 75)
 MIN_INLIERS = 35
@@ -19,7 +19,7 @@ MIN_INLIERS = 35
 @pytest.fixture(scope="module")
 def grid(naip_tiles_db, naip_map):
     """The tiles of the NAIP database, the map size, and an independent pixel -> lat/lon of the whole map
-    (rasterio's transform of the GeoTIFF + pyproj; not the tile's stored affine nor aeroloc.geo)."""
+    (rasterio's transform of the GeoTIFF + pyproj; not the tile's stored affine nor aeroloc.core.geo)."""
     import rasterio
 
     tiles = {t.id: t for t in load_tiles(naip_tiles_db)}
@@ -139,7 +139,7 @@ def _similar_pairs(n, n_outliers, seed=0):
 
 def test_similarity_fallback_recovers_a_known_transform_despite_outliers():
     """verify.verify_similarity: the model used when a homography is degenerate must recover rotation/scale/shift."""
-    from aeroloc.verify import verify_similarity
+    from aeroloc.matching.verify import verify_similarity
 
     p0, p1, R, t = _similar_pairs(200, 40)  # 20 % outliers
     v = verify_similarity(p0, p1, threshold_px=2.0)
@@ -151,7 +151,7 @@ def test_similarity_fallback_recovers_a_known_transform_despite_outliers():
 def test_similarity_finds_the_consensus_of_a_cross_season_pair():
     """At the ~7 % inlier ratio of a hard cross-season pair (30 right matches among 400) the 2-point similarity
     search still finds the transform, and too few matches give no model rather than an error."""
-    from aeroloc.verify import verify_similarity
+    from aeroloc.matching.verify import verify_similarity
 
     p0, p1, R, t = _similar_pairs(400, 370, seed=1)
     v = verify_similarity(p0, p1, threshold_px=2.0)

@@ -24,8 +24,8 @@ from aeroloc.bench import plots, tables
 from aeroloc.bench.experiment import expand, load_experiment, project_root, sample_queries
 from aeroloc.bench.runner import run_experiment
 from aeroloc.bench.store import ResultStore, column_name
-from aeroloc.errors import AerolocError
-from aeroloc.geo import offset_latlon
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.geo import offset_latlon
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -70,7 +70,7 @@ def read_truth(queries_csv) -> list[tuple[str, float, float]]:
 
 
 class FakePipeline:
-    """Stands in for ``aeroloc.pipeline.run_config``: per-query errors from a fixed rule (larger at zoom 2,
+    """Stands in for ``aeroloc.bench.pipeline.run_config``: per-query errors from a fixed rule (larger at zoom 2,
     every 7th query not localized), estimates displaced by that many metres, metrics computed from them."""
 
     def __init__(self, match_image=None, fail_at=None):
@@ -215,7 +215,7 @@ def test_paper_experiments_validate():
     data = repo.parent / "shared" / "data"
     if not data.is_dir():
         pytest.skip(f"real data not found at {data}")
-    from aeroloc.models.retrieval import DEFAULT_METHOD
+    from aeroloc.retrieval.models import DEFAULT_METHOD
 
     for name in ("paper-zoom", "paper-overlap", "paper-rerank", "retrieval-sweep", "dense-stage"):
         exp = load_experiment(repo / "experiments" / f"{name}.yaml")
@@ -435,7 +435,7 @@ def test_map_overlay_sits_on_the_map_footprint(naip_map):
     from PIL import Image
 
     from aeroloc.bench.report import map_overlay
-    from aeroloc.maps import open_map
+    from aeroloc.maps.sources import open_map
 
     m = open_map(naip_map)
     ov = map_overlay(naip_map, max_px=400)
@@ -523,13 +523,14 @@ def test_html_report_is_offline_and_renders_in_chromium(tmp_path, naip_map, naip
 def test_key_follows_the_rerankers_effective_settings(tmp_path, monkeypatch):
     """A changed re-ranker default (threshold, geometry …) gives new keys, so old results are measured again;
     retrieval-only configurations keep theirs."""
-    from aeroloc import rerank
+    from aeroloc.matching import registry
 
     root = make_project(tmp_path)
     doc = base_doc(rerankers=["none", "xfeat-lighterglue"])
     before = {c.reranker: c.key() for c in expand(load_experiment(write_yaml(root, doc)))}
-    changed = {**rerank.RERANKERS["xfeat-lighterglue"], "min_inliers": 31}
-    monkeypatch.setitem(rerank.RERANKERS, "xfeat-lighterglue", changed)
+    entry = registry.RERANKERS["xfeat-lighterglue"]
+    changed = {**entry, "cascade": {**entry["cascade"], "min_inliers": 31}}
+    monkeypatch.setitem(registry.RERANKERS, "xfeat-lighterglue", changed)
     after = {c.reranker: c.key() for c in expand(load_experiment(write_yaml(root, doc, "b.yaml")))}
     assert after[None] == before[None]
     assert after["xfeat-lighterglue"] != before["xfeat-lighterglue"]

@@ -13,9 +13,9 @@ import shutil
 import numpy as np
 import pytest
 
-from aeroloc.database import Database, build_global
-from aeroloc.errors import AerolocError
-from aeroloc.store import DescriptorStore
+from aeroloc.retrieval.database import Database, build_global
+from aeroloc.core.errors import AerolocError
+from aeroloc.retrieval.store import DescriptorStore
 
 METHOD = "xfeat-vlad"
 
@@ -64,12 +64,12 @@ def test_descriptors_are_float16_unit_vectors_on_disk(naip_db):
 
 
 def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_path, monkeypatch):
-    import aeroloc.extract
+    import aeroloc.retrieval.descriptors
 
     folder = tmp_path / "db"
     shutil.copytree(naip_db, folder, ignore=shutil.ignore_patterns("global", "local", "db.json"))
     db = Database(folder)
-    real = aeroloc.extract.iter_descriptors
+    real = aeroloc.retrieval.descriptors.iter_descriptors
     seen = []
 
     def dies_after_one_batch(model, paths, *a, **kw):
@@ -79,7 +79,7 @@ def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_p
                 raise KeyboardInterrupt("simulated Ctrl-C during the descriptor build")
             yield batch
 
-    monkeypatch.setattr(aeroloc.extract, "iter_descriptors", dies_after_one_batch)
+    monkeypatch.setattr(aeroloc.retrieval.descriptors, "iter_descriptors", dies_after_one_batch)
     with pytest.raises(KeyboardInterrupt):
         build_global(db, METHOD, device="cpu", batch_size=8, progress=False)
     gdirs = list((folder / "global").iterdir())
@@ -92,7 +92,7 @@ def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_p
         seen.append(len(paths))
         yield from real(model, paths, *a, **kw)
 
-    monkeypatch.setattr(aeroloc.extract, "iter_descriptors", counts)
+    monkeypatch.setattr(aeroloc.retrieval.descriptors, "iter_descriptors", counts)
     rep = build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False)
     assert seen == [35, 27]  # the resumed run described only the 27 tiles left
     assert not rep["cached"] and rep["fit_s"] == 0.0  # the fitted vocabulary was reused, not refitted
@@ -112,10 +112,10 @@ def _random_recall(n_tiles: int, n_true: int, top: int) -> float:
 
 
 def test_retrieval_finds_the_true_tile_on_real_cross_season_queries(naip_db, naip_dev):
-    from aeroloc.images import read_image
-    from aeroloc.metrics import tile_contains
-    from aeroloc.queries import load_queries
-    from aeroloc.retrieve import Retriever
+    from aeroloc.core.images import read_image
+    from aeroloc.bench.metrics import tile_contains
+    from aeroloc.core.queries import load_queries
+    from aeroloc.retrieval.retriever import Retriever
 
     db = Database(naip_db)
     retriever = Retriever(db, METHOD, "cpu")
@@ -141,7 +141,7 @@ def test_retrieval_finds_the_true_tile_on_real_cross_season_queries(naip_db, nai
 def test_queries_are_described_with_the_configuration_the_tiles_were_built_with(naip_db, monkeypatch):
     """db.json keeps the full effective configuration: a class default changed after the build (a new release)
     must not change how queries are described against the old tile descriptors."""
-    from aeroloc.models.retrieval import method_class
+    from aeroloc.retrieval.models import method_class
 
     cls = method_class(METHOD)
     built = Database(naip_db).meta["global"][METHOD]["conf"]

@@ -1,4 +1,4 @@
-"""The dense structural stage (aeroloc.dense, aeroloc.densemap) on real NAIP data: cross-season queries that local
+"""The dense structural stage (aeroloc.matching.dense, aeroloc.localization.dense_stage) on real NAIP data: cross-season queries that local
 features cannot match are placed within metres, a crop of the map is found to a fraction of a pixel, and what is
 not on the map (or turned beyond the searched headings) gets no trusted answer."""
 
@@ -8,13 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from aeroloc import geo
-from aeroloc.dense import DEFAULTS, DenseRegion, orientation_features
-from aeroloc.densemap import DenseMapLocator, check_query_gsd
-from aeroloc.errors import AerolocError
-from aeroloc.images import read_image
-from aeroloc.maps import open_map
-from aeroloc.queries import load_queries
+from aeroloc.core import geo
+from aeroloc.matching.dense import DEFAULTS, DenseRegion, orientation_features
+from aeroloc.localization.dense_stage import DenseMapLocator, check_query_gsd
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.images import read_image
+from aeroloc.maps.sources import open_map
+from aeroloc.core.queries import load_queries
 
 # XFeat + LighterGlue found 4 and 5 verified matches on their true tiles (the lake of 2009 and the field of 2015
 # look nothing like 2020's); the dense search measured 4.2 m and 3.4 m, scores 0.45 and 0.39, ratios 2.3 and 1.9.
@@ -72,7 +72,7 @@ def test_a_crop_of_the_map_is_found_to_a_pixel_and_its_heading_to_a_few_degrees(
     assert abs(m.angle - angle) <= 3.75
     assert m.ratio > 2
     # the footprint drawn for --save-matches: the crop's corners on the map, in map pixels
-    from aeroloc.densemap import DenseResult
+    from aeroloc.localization.dense_stage import DenseResult
 
     corners = DenseResult(m, m.x, m.y, 0.0, 0.0).footprint((side, side), 1.0, 1.0)
     edge = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float64)
@@ -116,7 +116,7 @@ def test_no_trusted_answer_when_the_true_place_is_masked_turned_or_elsewhere(nai
 
 
 def test_headings_searched_follow_what_is_known_of_the_heading():
-    from aeroloc.dense import ANY_HEADING, heading_angles
+    from aeroloc.matching.dense import ANY_HEADING, heading_angles
 
     assert heading_angles(None, True)["angles"] == DEFAULTS["angles"]
     assert heading_angles(None, False)["angles"] == ANY_HEADING
@@ -129,7 +129,7 @@ def test_headings_searched_follow_what_is_known_of_the_heading():
 def test_a_query_at_an_unknown_heading_is_found_by_the_full_circle(naip, queries, naip_dev):
     """A dev-rotated query turned far from north (beyond the ±15° of a north-up search) is placed by the search
     over every heading, with its heading."""
-    from aeroloc.dense import heading_angles
+    from aeroloc.matching.dense import heading_angles
 
     rotated = {q.name: q for q in load_queries(naip_dev.parent.parent / "dev-rotated" / "queries.csv")}
     q = rotated["naip_20090818_r_004.jpg"]  # heading 246°; a 2009 image (measured: 4.6 m, ratio 3.2)
@@ -158,7 +158,7 @@ def test_working_resolution_is_the_coarser_of_query_and_map(naip):
 def test_a_large_map_is_searched_over_the_best_tiles_that_fit(naip):
     """When the whole map exceeds the pixel budget, the region is the bounding box of the best-ranked tiles that
     fits it, and the position still comes back in map pixels."""
-    from aeroloc.tiling import TileGrid
+    from aeroloc.maps.tiling import TileGrid
 
     tiles = list(TileGrid(naip, 1.0, 0.5))
     a, b = tiles[5], tiles[6]  # neighbours along a row, half overlapping
@@ -179,9 +179,9 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     """With the queries' resolution given, a query that local features miss is localized by the dense stage (its
     re-ranked tiles start with one that contains it), and a photo from elsewhere still ends "not localized" after
     the local-feature fallback."""
-    from aeroloc.database import Database
-    from aeroloc.localize import Localizer
-    from aeroloc.metrics import tile_contains
+    from aeroloc.retrieval.database import Database
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.bench.metrics import tile_contains
 
     db = Database(naip_db)
     loc = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=NAIP_GSD)
@@ -192,7 +192,7 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     assert tile_contains(db.by_id[res.top_tiles[0]], q.lat, q.lon) and len(res.top_tiles) == 1
     assert res.times_ms["align"] > 0 and res.times_ms.get("local_features", 0) == 0
     # a finished run without the resolution is not reused for one with it (the resolution is in the run's key)
-    from aeroloc.localize import localize_queries
+    from aeroloc.localization.localizer import localize_queries
 
     out = tmp_path / "r.csv"
     kw = dict(top_n=5, method="xfeat-vlad", rerank="xfeat-lighterglue", device="cpu", progress=False, north_up=True)
@@ -222,11 +222,11 @@ def test_the_cli_refuses_a_bad_query_resolution_before_any_work(naip_dev, tmp_pa
 @pytest.mark.slow
 def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(naip_map, naip_dev, tmp_path,
                                                                                 monkeypatch):
-    """aeroloc.pipeline end to end on 6 NAIP queries (query_gsd set): every one placed by the dense stage within
+    """aeroloc.bench.pipeline end to end on 6 NAIP queries (query_gsd set): every one placed by the dense stage within
     15 m, and the total time and peak memory are the localizing run's, also when its results file is reused."""
     import types
 
-    from aeroloc.pipeline import run_config
+    from aeroloc.bench.pipeline import run_config
 
     cfg = types.SimpleNamespace(map_path=str(naip_map), tile_m=None, queries_path=str(naip_dev), method="xfeat-vlad",
                                 reranker="xfeat-lighterglue", zoom=2.0, overlap=0.0, top_n=3, top_k=1,
@@ -234,9 +234,9 @@ def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(
     first = run_config(cfg, tmp_path)
     assert all(r["status"].startswith("localized (dense") for r in first["rows"]), [r["status"] for r in first["rows"]]
     assert max(r["error_m"] for r in first["rows"]) < 15.0
-    import aeroloc.pipeline
+    import aeroloc.bench.pipeline
 
-    monkeypatch.setattr(aeroloc.pipeline, "peak_rss_mb", lambda: 1e9)  # this process: not the localizing run
+    monkeypatch.setattr(aeroloc.bench.pipeline, "peak_rss_mb", lambda: 1e9)  # this process: not the localizing run
     again = run_config(cfg, tmp_path)  # the results file is reused: no query runs again
     assert again["timing"]["localize_total_s"] == pytest.approx(first["timing"]["localize_total_s"])
     # and so is the memory of the run that localized, not this process's

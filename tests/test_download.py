@@ -27,11 +27,11 @@ from PIL import Image
 
 from _mapfolders import latlon_to_merc, xyz_bounds
 from aeroloc import cli
-from aeroloc.download import (DownloadReport, InvalidImage, RetryPolicy, TokenBucket, decode_image, download_map,
+from aeroloc.maps.download import (DownloadReport, InvalidImage, RetryPolicy, TokenBucket, decode_image, download_map,
                               parse_retry_after, remove_partial_files)
-from aeroloc.errors import AerolocError
-from aeroloc.maps import open_map
-from aeroloc.providers import (GoogleStaticProvider, XYZProvider, bbox_around, google_grid, read_key, redact,
+from aeroloc.core.errors import AerolocError
+from aeroloc.maps.sources import open_map
+from aeroloc.maps.providers import (GoogleStaticProvider, XYZProvider, bbox_around, google_grid, read_key, redact,
                                resolve_provider, xyz_grid)
 
 pytest_httpserver = pytest.importorskip("pytest_httpserver")
@@ -296,8 +296,8 @@ def test_bbox_and_zoom_errors_are_clear():
 
 
 def test_bbox_around_adds_the_margin_in_metres(naip_dev):
-    from aeroloc.geo import geodesic_distance
-    from aeroloc.queries import load_queries
+    from aeroloc.core.geo import geodesic_distance
+    from aeroloc.core.queries import load_queries
 
     qs = load_queries(naip_dev, require_images=False)
     lat, lon = np.array([q.lat for q in qs]), np.array([q.lon for q in qs])
@@ -430,7 +430,7 @@ def test_lasting_failures_are_reported_and_a_rerun_fetches_only_them(tmp_path, n
     args = ["download", "--bbox", *map(str, ts.bbox), "--zoom", str(Z), "--provider",
             tile_server.base + "/{z}/{x}/{y}.png", "--out", str(out), "--retries", "3", "--rate", "1000",
             "--no-progress", "--timeout", "2"]
-    import aeroloc.download as dl
+    import aeroloc.maps.download as dl
 
     monkeypatch.setattr(dl.RetryPolicy, "delay", lambda self, attempt, retry_after=None: 0.0)  # no waiting
     assert cli.main(args) == 1  # tiles missing -> non-zero exit
@@ -467,7 +467,7 @@ def test_resume_replaces_a_corrupt_tile(tmp_path, naip_tiles, tile_server):
 
 
 def test_crash_mid_download_then_resume(tmp_path, naip_tiles, tile_server, monkeypatch):
-    import aeroloc.download as dl
+    import aeroloc.maps.download as dl
 
     ts = naip_tiles
     out = tmp_path / "map"
@@ -529,7 +529,7 @@ def test_keys_never_reach_messages_logs_or_manifest(tmp_path, naip_tiles, tile_s
                                                     caplog):
     import logging
 
-    import aeroloc.download as dl
+    import aeroloc.maps.download as dl
 
     ts = naip_tiles
     keys = sorted(ts.tiles)
@@ -585,7 +585,7 @@ def test_max_tiles_and_foreign_folder_are_refused(tmp_path, naip_tiles, tile_ser
 
 
 def test_download_around_a_flight_covers_every_position(tmp_path, naip_tiles, tile_server, naip_dev, capsys):
-    from aeroloc.queries import load_queries
+    from aeroloc.core.queries import load_queries
 
     out = tmp_path / "map"
     args = ["download", "--around", str(naip_dev), "--margin-m", "100", "--zoom", "13", "--provider",

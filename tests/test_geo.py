@@ -10,8 +10,8 @@ import pytest
 from affine import Affine
 from pyproj import Transformer
 
-from aeroloc import geo
-from aeroloc.errors import AerolocError
+from aeroloc.core import geo
+from aeroloc.core.errors import AerolocError
 
 # --- ellipsoids ---------------------------------------------------------------------------------------------
 WGS84_A, WGS84_F = 6378137.0, 1 / 298.257223563

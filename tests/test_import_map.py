@@ -1,4 +1,4 @@
-"""`aeroloc import`: a real orthophoto becomes a map folder (COG + manifest) that aeroloc.maps opens with the same
+"""`aeroloc import`: a real orthophoto becomes a map folder (COG + manifest) that aeroloc.maps.sources opens with the same
 pixels and georeference; reprojection to Web Mercator keeps every ground point on the same content; bad
 input is a one-line error."""
 
@@ -12,10 +12,10 @@ import rasterio
 from PIL import Image
 
 from aeroloc import cli
-from aeroloc.errors import AerolocError
-from aeroloc.geo import crs_to_latlon, geodesic_distance
-from aeroloc.maps import open_map
-from aeroloc.orthophoto import import_orthophoto
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.geo import crs_to_latlon, geodesic_distance
+from aeroloc.maps.sources import open_map
+from aeroloc.maps.orthophoto import import_orthophoto
 
 
 def test_import_keeps_pixels_and_georeference(tmp_path, toledo_map):

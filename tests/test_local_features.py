@@ -22,9 +22,9 @@ from PIL import Image
 from pyproj import Transformer
 from rasterio.windows import Window
 
-from aeroloc.errors import AerolocError, WeightsNotFound
-from aeroloc.models.local import RERANKERS, build_extractor, build_matcher, build_reranker
-from aeroloc.verify import homography_is_sane, verify_homography
+from aeroloc.core.errors import AerolocError, WeightsNotFound
+from aeroloc.matching.registry import RERANKERS, build_extractor, build_matcher, build_reranker
+from aeroloc.matching.verify import homography_is_sane, verify_homography
 
 CROP = 320  # map crop side (px at 5 m/px), the query footprint is 140-280 px
 
@@ -183,7 +183,7 @@ def test_registry_names_and_unknown_name():
 
 # -- SuperPoint / SuperGlue / SuperPoint-LightGlue weights -----------------------------------------------------
 def test_superpoint_keys_match_magicleap_checkpoint():
-    from aeroloc.models.local.superpoint import SuperPointNet
+    from aeroloc.matching.models.superpoint import SuperPointNet
 
     sd = SuperPointNet().state_dict()
     assert len(sd) == 24  # 12 convolutions x (weight, bias), as in superpoint_v1.pth
@@ -195,7 +195,7 @@ def test_superpoint_keys_match_magicleap_checkpoint():
 
 
 def test_superglue_keys_match_magicleap_checkpoint():
-    from aeroloc.models.local.superglue import SuperGlue
+    from aeroloc.matching.models.superglue import SuperGlue
 
     sd = {k: v for k, v in SuperGlue().state_dict().items() if not k.endswith("num_batches_tracked")}
     # keypoint encoder 5 convs + 4 BN (4 tensors each) = 26; 18 GNN layers x (4 attn convs x 2 + 2 convs x 2 +
@@ -221,8 +221,8 @@ def weights_dir(tmp_path, monkeypatch):
 
 
 def test_superpoint_superglue_load_self_saved_weights(weights_dir, naip_crop):
-    from aeroloc.models.local.superglue import SuperGlue
-    from aeroloc.models.local.superpoint import SuperPointNet
+    from aeroloc.matching.models.superglue import SuperGlue
+    from aeroloc.matching.models.superpoint import SuperPointNet
 
     torch.manual_seed(0)
     sp, sg = SuperPointNet(), SuperGlue()
@@ -333,7 +333,7 @@ def test_homography_sanity():
 
 
 def test_valid_mask_is_every_pixel_not_pure_black():
-    from aeroloc.images import valid_mask
+    from aeroloc.core.images import valid_mask
 
     rng = np.random.default_rng(3)
     img = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
@@ -354,8 +354,8 @@ def test_fused_cross_attention_matches_like_kornias_own(naip_pair):
     softmaxes on a real NAIP pair (scores within float noise); weights and state-dict keys are untouched."""
     from kornia.feature.lightglue import CrossBlock
 
-    from aeroloc.localfeatures import extract
-    from aeroloc.models.local.xfeat import fuse_cross_attention
+    from aeroloc.matching.features import extract
+    from aeroloc.matching.models.xfeat import fuse_cross_attention
 
     extractor, matcher = build_reranker("xfeat-lighterglue", "cpu")
     blocks = [m for m in matcher.net.modules() if isinstance(m, CrossBlock)]

@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from aeroloc import geo
-from aeroloc.database import Database
-from aeroloc.images import read_image
-from aeroloc.metrics import tile_contains
-from aeroloc.queries import load_queries
+from aeroloc.core import geo
+from aeroloc.retrieval.database import Database
+from aeroloc.core.images import read_image
+from aeroloc.bench.metrics import tile_contains
+from aeroloc.core.queries import load_queries
 
 METHOD, RERANK = "xfeat-vlad", "xfeat-lighterglue"
 # Chosen after localizing the 48 queries of 2012 and 2014 (and a few others) against this 35-tile database:
@@ -35,7 +35,7 @@ def queries(naip_dev):
 
 @pytest.fixture(scope="module")
 def localizer(db):
-    from aeroloc.localize import Localizer
+    from aeroloc.localization.localizer import Localizer
 
     return Localizer(db, METHOD, RERANK, "cpu")
 
@@ -68,7 +68,7 @@ def test_images_not_in_the_map_are_not_localized(localizer, data_dir, queries):
 
 @pytest.mark.slow
 def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path, monkeypatch):
-    import aeroloc.localize as loc
+    import aeroloc.localization.localizer as loc
 
     qs = [queries[n] for n in GOOD[:2]]
     out = tmp_path / "results.csv"
@@ -125,8 +125,8 @@ def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev,
     import subprocess
     import sys
 
-    from aeroloc.errors import AerolocError
-    from aeroloc.localize import heading_conf
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.localization.localizer import heading_conf
 
     assert heading_conf({"max_verify": 2}, True, 1) == {"max_verify": 2, "rotations": [0]}
     assert heading_conf(None, False, 4) is None
@@ -145,7 +145,7 @@ def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev,
 def test_north_up_costs_one_extraction_and_a_turned_query_is_not_localized(db, queries, monkeypatch):
     """With the heading known, the re-ranker extracts the query once; a query that is in fact turned by a quarter
     finds no verified match at the upright heading and is reported "not localized", not put somewhere wrong."""
-    from aeroloc.localize import Localizer, heading_conf
+    from aeroloc.localization.localizer import Localizer, heading_conf
 
     loc = Localizer(db, METHOD, RERANK, "cpu", heading_conf(None, True, 1))
     calls = []

@@ -14,8 +14,8 @@ from pyproj import Transformer
 from rasterio.windows import Window
 
 from _mapfolders import build_seed_folder, build_xyz_folder, xyz_bounds
-from aeroloc.errors import AerolocError
-from aeroloc.maps import GeoTiffMap, TileFolderMap, open_map
+from aeroloc.core.errors import AerolocError
+from aeroloc.maps.sources import GeoTiffMap, TileFolderMap, open_map
 
 
 # --- GeoTIFF ------------------------------------------------------------------------------------------------

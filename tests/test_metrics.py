@@ -13,10 +13,10 @@ from affine import Affine
 from pyproj import Geod, Transformer
 
 from aeroloc.cli import main
-from aeroloc.errors import AerolocError
-from aeroloc.metrics import Result, evaluate, first_hit, read_results, tile_contains
-from aeroloc.queries import Query
-from aeroloc.tiling import CSV_COLUMNS, Tile, tile_row
+from aeroloc.core.errors import AerolocError
+from aeroloc.bench.metrics import Result, evaluate, first_hit, read_results, tile_contains
+from aeroloc.core.queries import Query
+from aeroloc.maps.tiling import CSV_COLUMNS, Tile, tile_row
 
 UTM = "EPSG:26914"
 _to_ll = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image, TiffImagePlugin
 
-from aeroloc.errors import AerolocError
-from aeroloc.queries import exif_gps, load_queries
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.queries import exif_gps, load_queries
 
 
 def _csv_rows(path):

@@ -1,4 +1,4 @@
-"""Map-window re-alignment (aeroloc.refine): the window geometry on hand-made homographies, and on real NAIP data a
+"""Map-window re-alignment (aeroloc.localization.window): the window geometry on hand-made homographies, and on real NAIP data a
 weak tile match that passes once the query is matched against the map window its hypothesis covers."""
 
 from __future__ import annotations
@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aeroloc import geo
-from aeroloc.database import Database
-from aeroloc.maps import open_map
-from aeroloc.refine import beyond_tile, query_window
+from aeroloc.core import geo
+from aeroloc.retrieval.database import Database
+from aeroloc.maps.sources import open_map
+from aeroloc.localization.window import beyond_tile, query_window
 
 
 @pytest.fixture(scope="module")
@@ -67,12 +67,12 @@ def test_weak_tile_match_passes_on_its_map_window(db, naip_dev):
     """naip_20120731_n_006 (725 m, 2012) against its true tile: LighterGlue finds < min_inliers similarity inliers
     on the 1280 m tile, but the window the hypothesis covers (query footprint + 20 %) holds the matches to localize
     it within 25 m; a wrong tile's hypothesis gives a window that does not pass."""
-    from aeroloc.align import align
-    from aeroloc.images import read_image
-    from aeroloc.localfeatures import extract
-    from aeroloc.localize import Localizer
-    from aeroloc.queries import load_queries
-    from aeroloc.rerank import Candidate
+    from aeroloc.localization.alignment import align
+    from aeroloc.core.images import read_image
+    from aeroloc.matching.features import extract
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.core.queries import load_queries
+    from aeroloc.localization.cascade import Candidate
 
     q = {q.name: q for q in load_queries(naip_dev)}["naip_20120731_n_006.jpg"]
     image = read_image(q.path)
@@ -94,7 +94,7 @@ def test_weak_tile_match_passes_on_its_map_window(db, naip_dev):
 
 
 def test_a_map_that_is_gone_turns_the_window_stage_off_with_a_warning(tmp_path, naip_map):
-    from aeroloc.refine import open_map_for_refine
+    from aeroloc.localization.window import open_map_for_refine
 
     assert open_map_for_refine(naip_map).width > 0
     with pytest.warns(UserWarning, match=r"map not found; weak matches are not re-matched on the map window"):

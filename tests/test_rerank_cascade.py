@@ -8,13 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aeroloc import geo
-from aeroloc.database import Database
-from aeroloc.errors import AerolocError
-from aeroloc.images import read_image
-from aeroloc.queries import load_queries
-from aeroloc.rerank import Candidate, Reranker
-from aeroloc.retrieve import Retriever
+from aeroloc.core import geo
+from aeroloc.retrieval.database import Database
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.images import read_image
+from aeroloc.core.queries import load_queries
+from aeroloc.localization.cascade import Candidate, Reranker
+from aeroloc.retrieval.retriever import Retriever
 
 # 2012 query with a true tile at retrieval rank 1 and ~450 verified inliers (see test_localize.py)
 QUERY = "naip_20120731_n_018.jpg"
@@ -50,7 +50,7 @@ def count_extractions(reranker, monkeypatch):
 
 
 def _localize(db, reranker, image, tile_ids):
-    from aeroloc.align import align
+    from aeroloc.localization.alignment import align
 
     best = reranker(image, tile_ids, 1).candidates[0]
     m = db.info["map"]

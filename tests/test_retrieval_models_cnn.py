@@ -13,10 +13,10 @@ import rasterio
 import torch
 from rasterio.windows import Window
 
-from aeroloc.errors import AerolocError, WeightsNotFound
-from aeroloc.models.retrieval import build_method, method_class
-from aeroloc.models.retrieval.netvlad import NetVLADLayer, read_matconvnet, state_from_matconvnet
-from aeroloc.models.weights import cache_dir
+from aeroloc.core.errors import AerolocError, WeightsNotFound
+from aeroloc.retrieval.models import build_method, method_class
+from aeroloc.retrieval.models.netvlad import NetVLADLayer, read_matconvnet, state_from_matconvnet
+from aeroloc.core.weights import cache_dir
 
 
 def meta_model(name: str, conf: dict | None = None):

@@ -18,12 +18,12 @@ import rasterio
 import torch
 from rasterio.windows import Window
 
-from aeroloc.errors import AerolocError, WeightsNotFound
-from aeroloc.models.local.selavpr_local import SelaVPRLocal, SelaVPRMutualNN
-from aeroloc.models.retrieval import build_method, method_class
-from aeroloc.models.retrieval.anyloc import AnyLoc, hard_vlad
-from aeroloc.models.retrieval.dinov2 import DinoV2
-from aeroloc.models.retrieval.salad import log_optimal_transport
+from aeroloc.core.errors import AerolocError, WeightsNotFound
+from aeroloc.matching.models.selavpr_local import SelaVPRLocal, SelaVPRMutualNN
+from aeroloc.retrieval.models import build_method, method_class
+from aeroloc.retrieval.models.anyloc import AnyLoc, hard_vlad
+from aeroloc.retrieval.models.dinov2 import DinoV2
+from aeroloc.retrieval.models.salad import log_optimal_transport
 
 TINY_VIT = {"embed_dim": 64, "num_heads": 2, "depth": 3}  # test-only size (the released files need the real one)
 
@@ -245,7 +245,7 @@ def test_selavpr_loads_checkpoint_and_extracts_local_features(weights_dir, naip_
         build_method("selavpr", conf)
     assert "1vy05l0JTEgr6n8iSoz_P_yjWfEzFPAkV" in str(err.value)
     assert str(weights_dir.parent / "cache" / "weights" / "SelaVPR_msls.pth") in str(err.value)
-    from aeroloc.models.retrieval.selavpr import SelaVPR
+    from aeroloc.retrieval.models.selavpr import SelaVPR
 
     state = {k: v.clone() for k, v in _random_model_state(SelaVPR, conf).items()}
     # util.save_checkpoint of a DataParallel model: nested dict, "module." prefix

@@ -10,12 +10,12 @@ import sys
 import numpy as np
 import pytest
 
-from aeroloc.database import Database
-from aeroloc.errors import AerolocError
-from aeroloc.images import read_image
-from aeroloc.metrics import tile_contains
-from aeroloc.queries import load_queries
-from aeroloc.retrieve import Retriever, rotate_image, rotated_views
+from aeroloc.retrieval.database import Database
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.images import read_image
+from aeroloc.bench.metrics import tile_contains
+from aeroloc.core.queries import load_queries
+from aeroloc.retrieval.retriever import Retriever, rotate_image, rotated_views
 
 METHOD = "xfeat-vlad"
 # dev-rotated queries with a heading within 17 degrees of 90, 180 or 270 (one of the four quarter-turn views is
@@ -44,8 +44,8 @@ def dev_query(naip_dev):
 
 
 def test_one_rotation_is_the_plain_search(retriever, dev_query):
-    from aeroloc.extract import describe_image
-    from aeroloc.index import search
+    from aeroloc.retrieval.descriptors import describe_image
+    from aeroloc.retrieval.index import search
 
     _, image = dev_query
     desc, _ = describe_image(retriever.model, image, "cpu")
@@ -76,7 +76,7 @@ def test_four_rotations_are_invariant_to_quarter_turns(retriever, dev_query):
 
 
 def test_merged_top_n_is_capped_and_descriptor_time_is_the_total(retriever, dev_query, monkeypatch):
-    import aeroloc.retrieve as retrieve
+    import aeroloc.retrieval.retriever as retrieve
 
     real = retrieve.describe_image
     monkeypatch.setattr(retrieve, "describe_image", lambda *a: (real(*a)[0], 2.5))  # a fixed 2.5 ms per view
@@ -102,7 +102,7 @@ def test_batched_ranking_equals_one_query_at_a_time(retriever, naip_dev):
 
 
 def test_merge_keeps_each_tiles_best_score_and_breaks_ties_by_tile_order(retriever, dev_query, monkeypatch):
-    import aeroloc.retrieve as retrieve
+    import aeroloc.retrieval.retriever as retrieve
 
     def fake_search(index, queries, k):  # two views; tiles 2 and 7 tie at 0.5, tile 2 also scores 0.4
         assert queries.shape[0] == 2
@@ -146,7 +146,7 @@ def test_quarter_turned_real_queries_are_found(db, retriever, data_dir):
 
 
 def test_bad_rotations_are_rejected(db, naip_dev, tmp_path):
-    from aeroloc.localize import localize_queries
+    from aeroloc.localization.localizer import localize_queries
 
     for bad in (0, -4, 2.5, True):
         with pytest.raises(AerolocError, match="rotations must be an integer >= 1"):
@@ -161,7 +161,7 @@ def test_bad_rotations_are_rejected(db, naip_dev, tmp_path):
 
 
 def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeypatch):
-    import aeroloc.localize as loc
+    import aeroloc.localization.localizer as loc
 
     qs = load_queries(naip_dev)[:1]
     out = tmp_path / "r.csv"

@@ -7,9 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from aeroloc.errors import AerolocError
-from aeroloc.index import build_index, load_index, save_index, search
-from aeroloc.store import DescriptorStore, FeatureStore, config_key
+from aeroloc.core.errors import AerolocError
+from aeroloc.retrieval.index import build_index, load_index, save_index, search
+from aeroloc.retrieval.store import DescriptorStore
+from aeroloc.matching.store import FeatureStore
+from aeroloc.core.io import config_key
 
 
 def unit_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
@@ -204,8 +206,8 @@ def test_format1_group_still_reads(tmp_path):
 def test_feature_format_is_part_of_the_local_store_key(monkeypatch):
     import types
 
-    from aeroloc import localfeatures
-    from aeroloc.rerank import rerank_conf
+    from aeroloc.matching import features as localfeatures
+    from aeroloc.matching.registry import rerank_conf
 
     db, conf = types.SimpleNamespace(tiles_hash=lambda: "tiles"), rerank_conf("xfeat-lighterglue")
     now = localfeatures.local_key(db, "xfeat-lighterglue", conf)
@@ -217,10 +219,10 @@ def test_xfeat_tile_fits_200kb_and_stored_descriptors_match_like_float32(naip_ti
     """Real NAIP tile, default re-ranker's extractor: bytes on disk, and the screen's mutual NN after the round trip."""
     import cv2
 
-    from aeroloc.images import read_image
-    from aeroloc.localfeatures import extract
-    from aeroloc.models.local import build_reranker
-    from aeroloc.rerank import mutual_nn
+    from aeroloc.core.images import read_image
+    from aeroloc.matching.features import extract
+    from aeroloc.matching.registry import build_reranker
+    from aeroloc.localization.cascade import mutual_nn
 
     extractor, _ = build_reranker("xfeat-lighterglue", "cpu")
     tile = read_image(naip_tiles_db / "images" / "r002c002.png")
@@ -305,8 +307,8 @@ def test_local_store_key_follows_the_tile_features_not_the_reranking_settings():
     The extractor's conf and the tiles' working side change the features: another store."""
     import types
 
-    from aeroloc import localfeatures
-    from aeroloc.rerank import rerank_conf
+    from aeroloc.matching import features as localfeatures
+    from aeroloc.matching.registry import rerank_conf
 
     db = types.SimpleNamespace(tiles_hash=lambda: "tiles")
     key = localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue"))

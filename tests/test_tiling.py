@@ -12,10 +12,10 @@ import pytest
 from PIL import Image
 
 from _mapfolders import build_seed_folder
-from aeroloc import tiling
-from aeroloc.errors import AerolocError
-from aeroloc.maps import open_map
-from aeroloc.tiling import TileGrid, load_info, load_tiles, tile_count, write_tiles
+from aeroloc.maps import tiling
+from aeroloc.core.errors import AerolocError
+from aeroloc.maps.sources import open_map
+from aeroloc.maps.tiling import TileGrid, load_info, load_tiles, tile_count, write_tiles
 
 ZOOMS = [0.5, 1, 1.5, 2, 3]
 OVERLAPS = [0, 0.25, 0.5, 0.75]
@@ -176,9 +176,9 @@ def test_write_tiles_renders_the_map_and_caches(tmp_path, seed):
 
 def crash_image_writes_after(n: int, monkeypatch):
     """Make the n+1-th tile image write raise KeyboardInterrupt (an interrupted build); returns the real writer."""
-    import aeroloc.images
+    import aeroloc.core.images
 
-    real_write, calls = aeroloc.images.write_image, []
+    real_write, calls = aeroloc.core.images.write_image, []
 
     def crash(path, image, **kw):
         if len(calls) == n:
@@ -186,19 +186,19 @@ def crash_image_writes_after(n: int, monkeypatch):
         calls.append(path)
         real_write(path, image, **kw)
 
-    monkeypatch.setattr(aeroloc.images, "write_image", crash)
+    monkeypatch.setattr(aeroloc.core.images, "write_image", crash)
     return real_write
 
 
 def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch):
-    import aeroloc.images
+    import aeroloc.core.images
 
     s, m = seed
     out = tmp_path / "db"
     real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
-    monkeypatch.setattr(aeroloc.images, "write_image", real_write)
+    monkeypatch.setattr(aeroloc.core.images, "write_image", real_write)
     assert not (out / "tiles.csv").exists()  # nothing looks complete
     assert len(list((out / "images").glob("*.png"))) == 5
     assert not list(out.rglob("*.part"))
@@ -213,14 +213,14 @@ def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch)
 
 def test_interrupted_build_then_other_parameters(tmp_path, seed, monkeypatch):
     """Images left by an interrupted build of another configuration must not be reused as this one's."""
-    import aeroloc.images
+    import aeroloc.core.images
 
     s, m = seed
     out = tmp_path / "db"
     real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         write_tiles(s.path, out, zoom=1, overlap=0, progress=False)
-    monkeypatch.setattr(aeroloc.images, "write_image", real_write)
+    monkeypatch.setattr(aeroloc.core.images, "write_image", real_write)
     write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)  # same tile size, other windows
     _assert_database_matches_map(out, m, 1, 0.5)
     write_tiles(s.path, out, zoom=2, overlap=0.5, progress=False)

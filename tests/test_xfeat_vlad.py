@@ -7,8 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from aeroloc.errors import AerolocError
-from aeroloc.models.retrieval import build_method
+from aeroloc.core.errors import AerolocError
+from aeroloc.retrieval.models import build_method
 
 SIDE = 192  # tile side in map pixels (a multiple of 32: rotations by 90 degrees are exact)
 SMALL = {"n_clusters": 16, "upscale": 1.0}
@@ -17,7 +17,7 @@ METHODS = ["xfeat-vlad", "effnet-vlad"]
 
 @pytest.fixture(scope="module")
 def naip(naip_map):
-    from aeroloc.maps import open_map
+    from aeroloc.maps.sources import open_map
 
     return open_map(naip_map)
 
@@ -172,7 +172,7 @@ def test_effnet_folded_batchnorm_gives_the_same_features_and_keeps_the_checkpoin
 
 
 def _recall_at(model, tiles, images, queries, ns=(1, 10)) -> dict:
-    from aeroloc.metrics import tile_contains
+    from aeroloc.bench.metrics import tile_contains
 
     db = describe(model, images)
     hits = dict.fromkeys(ns, 0)
@@ -193,9 +193,9 @@ def test_recall_floor_on_cross_season_queries(naip, naip_dev, name, floor_r1, fl
 
     Random ranking gives R@1 ~= 0.07, R@10 ~= 0.53 here; on this subset the default XFeat-VLAD measured
     R@1/5/10 0.55/0.85/0.90 and EfficientNet-VLAD 0.90/0.95/0.95 (benchmarks/retrieval_offline.py: all 120)."""
-    from aeroloc.images import read_image
-    from aeroloc.queries import load_queries
-    from aeroloc.tiling import TileGrid
+    from aeroloc.core.images import read_image
+    from aeroloc.core.queries import load_queries
+    from aeroloc.maps.tiling import TileGrid
 
     grid = TileGrid(naip, zoom=1.0, overlap=0.5, base_px=200)
     tiles = list(grid)

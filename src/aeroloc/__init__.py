@@ -4,7 +4,7 @@ Coordinates in the public API are always ``(lat, lon)`` in WGS84 degrees; reader
 longitude first convert at the border.
 """
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 __version__ = "0.1.0"
 __all__ = ["AerolocError", "__version__"]

@@ -8,7 +8,7 @@ import argparse
 import importlib
 import sys
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 # command name -> (module under aeroloc.commands, one-line help)
 COMMANDS = {

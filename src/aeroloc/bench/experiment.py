@@ -7,8 +7,8 @@ Example (all keys; only ``name``, ``maps``, ``queries`` and ``methods`` are requ
       - {name: naip-nd, path: ../shared/data/naip-nd/map_20200831.tif, tile_m: null}
     queries:
       - {name: naip-nd/dev, path: ../shared/data/naip-nd/dev/queries.csv, map: naip-nd, limit: 40, north_up: true}
-    methods: [xfeat-vlad]            # aeroloc.models.retrieval.METHODS
-    rerankers: [none]                # none = retrieval only; else aeroloc.models.local.RERANKERS
+    methods: [xfeat-vlad]            # aeroloc.retrieval.models.METHODS
+    rerankers: [none]                # none = retrieval only; else aeroloc.matching.registry.RERANKERS
     zooms: [0.5, 1, 1.5, 2]          # > 0
     overlaps: [0]                    # in [0, 1)
     top_n: [20]                      # retrieved candidates (re-ranked when a re-ranker is set)
@@ -41,7 +41,7 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 KEYS = {"name", "description", "maps", "queries", "methods", "rerankers", "zooms", "overlaps", "top_n", "top_k",
         "thresholds_m", "device", "output", "cache"}
@@ -64,7 +64,7 @@ class QuerySpec:
     map: str
     limit: int | None = None  # evenly spaced subset of this many queries
     north_up: bool = False  # images north-up within ±45°: the re-ranker skips its 90° rotation search
-    query_gsd: float | None = None  # metres per query pixel: the dense stage runs first (aeroloc.densemap)
+    query_gsd: float | None = None  # metres per query pixel: the dense stage runs first (aeroloc.localization.dense_stage)
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class Experiment:
 
 @dataclass(frozen=True)
 class Config:
-    """One point of the sweep; the attribute names are what ``aeroloc.pipeline.run_config`` reads."""
+    """One point of the sweep; the attribute names are what ``aeroloc.bench.pipeline.run_config`` reads."""
 
     experiment: str
     map_name: str
@@ -116,7 +116,7 @@ class Config:
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
         plus every setting that changes the measurement."""
-        from aeroloc.store import config_key
+        from aeroloc.core.io import config_key
 
         parts = [self.map_identity or self.map_path, self.tile_m, self.queries_identity or self.queries_path,
                  self.method, self.reranker, float(self.zoom), float(self.overlap), int(self.top_n), int(self.top_k),
@@ -126,11 +126,11 @@ class Config:
         if self.north_up:  # likewise only when set
             parts.append({"north_up": True})
         if self.query_gsd is not None:
-            from aeroloc.dense import heading_angles
+            from aeroloc.matching.dense import heading_angles
 
             parts.append({"query_gsd": float(self.query_gsd), "dense": heading_angles(None, self.north_up)})
         if self.reranker:  # the re-ranker's effective settings: a changed default must not reuse old results
-            from aeroloc.rerank import rerank_conf
+            from aeroloc.matching.registry import rerank_conf
 
             parts.append({"rerank_conf": rerank_conf(self.reranker)})
         return config_key(*parts)
@@ -248,7 +248,7 @@ class _Validator:
                 self.fail(f"{where}.north_up", f"expected true or false, got {north_up!r}")
             gsd = q.get("query_gsd")
             if gsd is not None:
-                from aeroloc.densemap import check_query_gsd
+                from aeroloc.localization.dense_stage import check_query_gsd
 
                 try:
                     if isinstance(gsd, bool) or not isinstance(gsd, (int, float)):
@@ -270,7 +270,7 @@ class _Validator:
         return out
 
     def check_methods(self, methods):
-        from aeroloc.models.retrieval import METHODS
+        from aeroloc.retrieval.models import METHODS
 
         for i, m in enumerate(methods):
             if m not in METHODS:
@@ -279,7 +279,7 @@ class _Validator:
     def rerankers(self) -> tuple[str | None, ...]:
         names = self.names("rerankers", self.raw.get("rerankers", DEFAULTS["rerankers"]))
         try:
-            from aeroloc.models.local import RERANKERS
+            from aeroloc.matching.registry import RERANKERS
         except ImportError:  # registry not in this build: names are checked when the re-ranker is built
             RERANKERS = None
         out = []
@@ -372,7 +372,7 @@ def _is_number(v) -> bool:
 
 def identity(path: Path) -> str:
     """Content identity of a map/queries file (size + head/tail digest) or folder (names and sizes)."""
-    from aeroloc.store import file_identity
+    from aeroloc.core.io import file_identity
 
     path = Path(path)
     if path.is_file():

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 TEMPLATE = Path(__file__).with_name("report_template.html")
 ERROR_COLOURS = ["#1a9850", "#91cf60", "#fee08b", "#fc8d59", "#d73027"]  # <= t1 … <= t4, beyond
@@ -130,8 +130,8 @@ def map_overlay(map_path, max_px: int = 1400) -> dict:
     from affine import Affine
     from rasterio.transform import array_bounds
 
-    from aeroloc import geo
-    from aeroloc.maps import open_map
+    from aeroloc.core import geo
+    from aeroloc.maps.sources import open_map
 
     m = open_map(map_path)
     factor = max(1, math.ceil(max(m.width, m.height) / max_px))
@@ -156,7 +156,7 @@ def map_overlay(map_path, max_px: int = 1400) -> dict:
 
 
 def tile_footprints(db_folder) -> list[list[list[float]]] | None:
-    from aeroloc.tiling import load_tiles
+    from aeroloc.maps.tiling import load_tiles
 
     try:
         tiles = load_tiles(db_folder)

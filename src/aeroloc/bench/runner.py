@@ -15,7 +15,7 @@ from typing import Callable
 
 from aeroloc.bench.experiment import Config, Experiment, expand, load_experiment
 from aeroloc.bench.store import ResultStore
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 RunConfig = Callable[[Config, Path], dict]
 
@@ -24,7 +24,7 @@ def run_experiment(path, resume: bool = True, report_only: bool = False, run_con
                    progress: bool = True) -> Path:
     """Run (or resume) the sweep of experiment file ``path`` and return the HTML report's path.
 
-    ``run_config(config, cache_dir) -> dict`` defaults to :func:`aeroloc.pipeline.run_config`; configurations
+    ``run_config(config, cache_dir) -> dict`` defaults to :func:`aeroloc.bench.pipeline.run_config`; configurations
     already in the store are skipped unless ``resume`` is False; ``report_only`` rebuilds the outputs from
     the store without running anything."""
     exp = load_experiment(path)
@@ -33,7 +33,7 @@ def run_experiment(path, resume: bool = True, report_only: bool = False, run_con
         run_id = None
         if not report_only:
             if run_config is None:
-                from aeroloc.pipeline import run_config
+                from aeroloc.bench.pipeline import run_config
             run_id = sweep(exp, configs, store, run_config, resume, progress)
         return write_outputs(exp, configs, store, run_id)
 

@@ -28,7 +28,8 @@ import sqlite3
 from datetime import datetime, timezone
 from pathlib import Path
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
+from aeroloc.core.io import write_csv_atomic
 
 DB_NAME = "results.sqlite"
 
@@ -209,13 +210,7 @@ class ResultStore:
             q, args = q + " WHERE experiment=?", (experiment,)
         cur = self.db.execute(q + " ORDER BY created_at, rowid", args)
         cols = [d[0] for d in cur.description if not d[0].endswith("_json")]
-        tmp = path.with_name(path.name + ".part")
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(cols)
-            for r in cur:
-                w.writerow(["" if r[c] is None else r[c] for c in cols])
-        os.replace(tmp, path)
+        write_csv_atomic(path, cols, ({c: "" if r[c] is None else r[c] for c in cols} for r in cur))
         return path
 
 

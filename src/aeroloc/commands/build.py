@@ -6,7 +6,7 @@ from aeroloc.commands.tiles import add_map_grid_arguments, summary
 
 
 def add_arguments(p):
-    from aeroloc.models.retrieval import DEFAULT_METHOD
+    from aeroloc.retrieval.models import DEFAULT_METHOD
 
     add_map_grid_arguments(p)
     p.add_argument("--out", required=True, help="database folder")
@@ -22,11 +22,11 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.database import Database, build_global
-    from aeroloc.device import pick_device
-    from aeroloc.models.retrieval import method_class
-    from aeroloc.rerank import rerank_conf
-    from aeroloc.tiling import write_tiles
+    from aeroloc.retrieval.database import Database, build_global
+    from aeroloc.core.device import pick_device
+    from aeroloc.retrieval.models import method_class
+    from aeroloc.matching.registry import rerank_conf
+    from aeroloc.maps.tiling import write_tiles
 
     method_class(args.method)  # unknown names fail now, not after the tiles (or the descriptors) are built
     if args.local:
@@ -44,7 +44,7 @@ def run(args) -> int:
               f"fit {rep['fit_s']:.1f} s, index {rep['index_s'] * 1000:.0f} ms, "
               f"{rep['bytes_per_tile'] / 1024:.1f} KB/tile")
     if args.local:
-        from aeroloc.localfeatures import build_local
+        from aeroloc.matching.features import build_local
 
         lrep = build_local(db, args.local, device)
         print(f"local features {args.local}: {lrep['n_tiles']} tiles, {lrep['bytes_per_tile'] / 1024:.1f} KB/tile"

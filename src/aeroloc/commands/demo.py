@@ -30,16 +30,16 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.database import Database, build_global
-    from aeroloc.device import pick_device
-    from aeroloc.errors import AerolocError
-    from aeroloc.localfeatures import build_local
-    from aeroloc.localize import localize_queries
-    from aeroloc.metrics import evaluate, read_results
-    from aeroloc.models.retrieval import DEFAULT_METHOD
-    from aeroloc.queries import load_queries
-    from aeroloc.rerank import DEFAULT_RERANKER
-    from aeroloc.tiling import write_tiles
+    from aeroloc.retrieval.database import Database, build_global
+    from aeroloc.core.device import pick_device
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.matching.features import build_local
+    from aeroloc.localization.localizer import localize_queries
+    from aeroloc.bench.metrics import evaluate, read_results
+    from aeroloc.retrieval.models import DEFAULT_METHOD
+    from aeroloc.core.queries import load_queries
+    from aeroloc.matching.registry import DEFAULT_RERANKER
+    from aeroloc.maps.tiling import write_tiles
 
     from aeroloc.commands.tiles import summary
 
@@ -82,6 +82,6 @@ def run(args) -> int:
 
 
 def _retrieved(row):
-    from aeroloc.metrics import Result
+    from aeroloc.bench.metrics import Result
 
     return Result(row["name"], top_tiles=tuple(t for t in row["retrieved_tiles"].split(";") if t))

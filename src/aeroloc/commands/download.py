@@ -45,12 +45,12 @@ def add_arguments(p):
 def run(args) -> int:
     import logging
 
-    from aeroloc.download import RetryPolicy, download_map
-    from aeroloc.errors import AerolocError
-    from aeroloc.providers import bbox_around, read_key, resolve_provider
+    from aeroloc.maps.download import RetryPolicy, download_map
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.maps.providers import bbox_around, read_key, resolve_provider
 
     if args.around:
-        from aeroloc.queries import load_queries
+        from aeroloc.core.queries import load_queries
 
         queries = load_queries(args.around, require_images=False)
         bbox = bbox_around([(q.lat, q.lon) for q in queries], args.margin_m)

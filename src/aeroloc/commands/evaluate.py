@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from aeroloc.errors import AerolocError
+from aeroloc.core.errors import AerolocError
 
 
 def add_arguments(p):
@@ -27,9 +27,9 @@ def parse_thresholds(text: str) -> tuple[float, ...]:
 
 
 def run(args) -> int:
-    from aeroloc.metrics import evaluate, format_table, read_results
-    from aeroloc.queries import load_queries
-    from aeroloc.tiling import load_tiles
+    from aeroloc.bench.metrics import evaluate, format_table, read_results
+    from aeroloc.core.queries import load_queries
+    from aeroloc.maps.tiling import load_tiles
 
     results = read_results(args.results)
     queries = load_queries(args.truth, require_images=False)

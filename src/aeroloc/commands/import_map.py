@@ -12,7 +12,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.orthophoto import import_orthophoto
+    from aeroloc.maps.orthophoto import import_orthophoto
 
     info = import_orthophoto(args.ortho, args.out, args.to_webmercator, args.resampling)
     s, w, n, e = info["bounds"]

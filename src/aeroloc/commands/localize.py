@@ -9,7 +9,7 @@ REFINE_OUTSIDE = 0.15
 
 
 def add_arguments(p):
-    from aeroloc.rerank import DEFAULT_RERANKER, RERANKERS
+    from aeroloc.matching.registry import DEFAULT_RERANKER, RERANKERS
 
     p.add_argument("db", help="database folder built by 'aeroloc build'")
     p.add_argument("queries", help="queries.csv / queries.txt / folder of photos with EXIF GPS")
@@ -29,7 +29,7 @@ def add_arguments(p):
                         "more inliers and metres of accuracy, ~0.3 s more for those queries")
     p.add_argument("--query-gsd", type=float, metavar="M",
                    help="ground size of a query pixel in metres (satellite metadata, or height over ground x pixel "
-                        "angle): first match the query's structure densely over the map (aeroloc.dense), at "
+                        "angle): first match the query's structure densely over the map (aeroloc.matching.dense), at "
                         "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
                         "(~2 s); local features only when that finds no distinct match")
     p.add_argument("--out", required=True, help="results CSV")
@@ -38,13 +38,13 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.database import Database
-    from aeroloc.densemap import check_query_gsd
-    from aeroloc.device import pick_device
-    from aeroloc.errors import AerolocError
-    from aeroloc.queries import load_queries
-    from aeroloc.localize import heading_conf, localize_queries
-    from aeroloc.rerank import rerank_conf
+    from aeroloc.retrieval.database import Database
+    from aeroloc.localization.dense_stage import check_query_gsd
+    from aeroloc.core.device import pick_device
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.core.queries import load_queries
+    from aeroloc.localization.localizer import heading_conf, localize_queries
+    from aeroloc.matching.registry import rerank_conf
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+from aeroloc.core.io import write_csv_atomic
 from pathlib import Path
 
 
@@ -22,12 +23,12 @@ def add_arguments(p):
 def run(args) -> int:
     from tqdm import tqdm
 
-    from aeroloc.database import Database
-    from aeroloc.device import pick_device
-    from aeroloc.images import read_image
-    from aeroloc.errors import AerolocError
-    from aeroloc.queries import load_queries
-    from aeroloc.retrieve import Retriever
+    from aeroloc.retrieval.database import Database
+    from aeroloc.core.device import pick_device
+    from aeroloc.core.images import read_image
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.core.queries import load_queries
+    from aeroloc.retrieval.retriever import Retriever
 
     if args.top_n < 1:
         raise AerolocError(f"--top-n must be >= 1, got {args.top_n}")
@@ -69,12 +70,5 @@ def _row(db, q, r) -> dict:
 
 def write_rows(path, rows: list[dict]) -> None:
     """Write a results CSV atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
     fields = list(dict.fromkeys(k for r in rows for k in r)) or ["name", "lat", "lon", "top_tiles"]
-    with open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
+    write_csv_atomic(path, fields, rows)

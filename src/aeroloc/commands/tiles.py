@@ -16,7 +16,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.tiling import write_tiles
+    from aeroloc.maps.tiling import write_tiles
 
     info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m, progress=True)
     print(summary(info, args.out))

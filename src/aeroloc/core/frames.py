@@ -1,0 +1,52 @@
+"""One place for changing an image's frame (resizing) and for moving points between frames (homographies).
+
+Every stage brings images to a working resolution: retrieval shrinks large queries to the tiles' size, local
+features bring query and tile to a common side, the dense stage to a common ground resolution. They all resize
+here, so a query is resampled the same way wherever it goes: area-averaged when shrinking, nearest for masks,
+and linear or cubic when enlarging (what each stage was measured with).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_ENLARGE = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
+
+
+def resize(image: np.ndarray, factor: float, nearest: bool = False, enlarge: str = "linear") -> np.ndarray:
+    """``image`` resized by ``factor`` (each side ``round(side * factor)``, at least 1 px); ``image`` itself when
+    the factor is 1. Area-averaged when shrinking, nearest-neighbour for masks (``nearest``), ``enlarge``
+    ("linear" or "cubic") when enlarging."""
+    if abs(factor - 1) < 1e-6:
+        return image
+    size = (max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor)))
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if factor < 1 else _ENLARGE[enlarge]
+    return cv2.resize(image, size, interpolation=interp)
+
+
+def resize_to_side(image: np.ndarray, side: int | None, enlarge: str = "cubic") -> tuple[np.ndarray, float]:
+    """(``image`` with its longer side ``side`` px, the factor applied); unchanged (factor 1) for ``side`` None."""
+    if not side:
+        return image, 1.0
+    s = side / max(image.shape[:2])
+    if abs(s - 1) < 1e-6:
+        return image, 1.0
+    return resize(image, s, enlarge=enlarge), s
+
+
+def fit_within(image: np.ndarray, max_side: float | None) -> np.ndarray:
+    """``image`` shrunk so its longer side is at most ``max_side`` px (area-averaged); never enlarged."""
+    side = max(image.shape[:2])
+    if not max_side or side <= max_side:
+        return image
+    return resize(image, max_side / side)
+
+
+def project_points(H: np.ndarray, pts) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) points through the 3x3 homography ``H``: (projected points, their homogeneous w). Points with
+    w = 0 come out infinite; callers that need a real view check ``w``."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    v = np.c_[pts, np.ones(len(pts))] @ np.asarray(H, np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return v[:, :2] / v[:, 2:3], v[:, 2]

@@ -1,0 +1,217 @@
+"""Re-ranking: score each retrieved candidate by geometrically verified inliers, best K out.
+
+The straightforward loop (a learned matcher on every candidate x query rotation) costs ~150 ms+ a pair, so
+re-ranking runs in two stages on features that are extracted once per query and stored per tile:
+
+1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
+   every visited candidate a verified inlier count in ~15 ms. Query rotations (multiples of 90°, for photos
+   taken at any heading) are tried lazily: the first ``rotation_probe`` candidates at the upright rotation,
+   the next rotation only while none reached ``min_screen`` inliers, later candidates at the heading found;
+   each rotation's features are extracted on first use, so an upright photo costs one
+   extraction. Candidates are visited in retrieval order and the screen stops early once one reaches
+   ``early_exit`` inliers (the rest keep their retrieval order behind it).
+2. **verify**: when no candidate's screen reached ``accept_screen`` inliers, the re-ranker's own matcher (e.g.
+   LighterGlue, ~0.3-1 s a pair on CPU) re-matches the best screened candidates, at most ``max_verify``, until
+   one reaches ``min_inliers``; its verified inliers decide their order and give the transform for alignment.
+   The default fits a similarity to the matcher's matches (``geometry``): on 1059 NAIP + Toledo pairs wrong
+   tiles reached <= 24 similarity inliers and right ones a median of 89 (NAIP) / 356 (Toledo), and wrong tiles
+   reached <= 20 screen inliers, so a strong screen is trusted as it is and the matcher settles the rest.
+   A best match that stays weak is re-matched on the map window it points at (``refine_min``, aeroloc.localization.window).
+
+Ordering: matcher-verified candidates by inliers, then screened ones by screen inliers, then the unvisited
+in retrieval order; ties keep the retrieval order (stable).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aeroloc.core.errors import AerolocError
+from aeroloc.matching.features import extract, to_original
+from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
+
+@dataclass
+class Candidate:
+    tile_id: str
+    retrieval_rank: int
+    screen: int = -1  # screen inliers (-1 = not visited)
+    inliers: int = -1  # matcher inliers (-1 = not verified by the matcher)
+    rot_k: int = 0
+    H: np.ndarray | None = None  # query original px -> tile original px
+    n_matches: int = 0
+    matches: tuple | None = None  # (query kpts, tile kpts, inlier mask) in original frames, for visualisation
+
+    @property
+    def score(self) -> int:
+        """The matcher's verified inliers when it ran, else the screen's."""
+        return self.inliers if self.inliers >= 0 else max(self.screen, 0)
+
+    def take(self, n_inliers, H, n_matches, vis, rot_k, stage: str) -> None:
+        better = self.H is None or n_inliers > (self.screen if stage == "screen" else self.inliers)
+        if stage == "screen":
+            self.screen = max(self.screen, n_inliers)
+        else:
+            self.inliers = max(self.inliers, n_inliers)
+        if better:
+            self.H, self.n_matches, self.matches, self.rot_k = H, n_matches, vis, rot_k
+
+
+@dataclass
+class Reranked:
+    candidates: list[Candidate]
+    times_ms: dict = field(default_factory=dict)  # local_features, rerank
+    n_screened: int = 0
+    n_verified: int = 0
+    query: dict = field(default_factory=dict)  # rot_k -> the query's features extracted on the way
+
+
+def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarray:
+    """(M, 2) index pairs of mutual nearest neighbours (cosine similarity above ``min_sim``)."""
+    from aeroloc.matching.models.xfeat import mutual_nn as mnn
+
+    return mnn(d0, d1, min_sim)[0]
+
+
+class Reranker:
+    """Holds the extractor/matcher and the tile feature store of one database."""
+
+    def __init__(self, db, name: str, device="cpu", conf: dict | None = None):
+        from aeroloc.matching.features import store_for
+
+        self.db, self.name = db, name
+        self.conf = rerank_conf(name, conf)
+        self.extractor, self.matcher = build_reranker(self.conf["features"], device, feature_overrides(self.conf))
+        self.store = store_for(db, name, self.conf)
+        self._have = self.store.names()
+
+    def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
+        """From the store; tiles not there yet are extracted once and written (lazy cache)."""
+        from aeroloc.core.images import read_image
+
+        missing = [t for t in tile_ids if t not in self._have]
+        if missing:
+            new = {t: extract(self.extractor, read_image(self.db.folder / self.db.by_id[t].path),
+                              self.conf["tile_side"]) for t in missing}
+            self.store.write_many(new)
+            self._have |= set(missing)
+        with self.store.reader() as r:
+            return {t: r.get(t) for t in tile_ids}
+
+    def doubt(self, c: Candidate) -> str | None:
+        """Why the best candidate must not be trusted, or None. A learned matcher can find ~40 consistent matches
+        on a wrong tile of similar texture; the screen's independent count then stays low (<= 20), whereas on
+        the right tile one of the two is high."""
+        if not self.conf["screen"] or c.inliers < 0:
+            return None  # screen-only candidate (or no screen at all): min_inliers alone decides
+        if c.screen < self.conf["min_screen"] and c.inliers < self.conf["confident_inliers"]:
+            return (f"screen found {c.screen} inliers < {self.conf['min_screen']} and the matcher {c.inliers} "
+                    f"< {self.conf['confident_inliers']}")
+        return None
+
+    def _verify(self, qf: dict, tf: dict, matches: np.ndarray, geometry: str = "homography"):
+        from aeroloc.matching.verify import homography_is_sane, verify_homography, verify_similarity
+
+        if len(matches) < 4:
+            return 0, None, len(matches), None
+        k0, k1 = to_original(qf), to_original(tf)
+        thr = self.conf["ransac_px"] / float(tf["scale"])
+        if geometry == "similarity":
+            v = verify_similarity(k0, k1, matches, threshold_px=thr)
+        else:
+            v = verify_homography(k0, k1, matches, threshold_px=thr)
+            if v.H is not None and not homography_is_sane(v.H, tuple(int(x) for x in qf["orig_size"]))[0]:
+                # nadir imagery: a full homography fitted on clustered inliers can extrapolate wildly; refit the
+                # better-conditioned similarity model (rotation, scale, shift) and count its own inliers
+                v = verify_similarity(k0, k1, matches, threshold_px=thr)
+        H, inliers = v.H, np.asarray(v.inliers, bool)
+        vis = (k0[matches[:, 0]], k1[matches[:, 1]], inliers)
+        return int(inliers.sum()), H, len(matches), vis
+
+    def screen_pair(self, qf, tf):
+        return self._verify(qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]))
+
+    def match_pair(self, qf, tf):
+        matches, _ = self.matcher.match(qf, tf)
+        return self._verify(qf, tf, np.asarray(matches, np.int64).reshape(-1, 2), self.conf["geometry"])
+
+    def match_window(self, qf: dict, window, ref_tile) -> tuple:
+        """Match query features against a map window (aeroloc.localization.window.Window) described at the working scale of
+        the database's tiles (``ref_tile``); returns what :meth:`match_pair` does."""
+        side = round(max(window.image.shape[:2]) * self.conf["tile_side"] / max(ref_tile.width, ref_tile.height))
+        wf = extract(self.extractor, window.image, side, 0, mask=window.valid)
+        return self.match_pair(qf, wf)
+
+    def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict) -> int:
+        """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
+
+        Rotation-major on the first ``rotation_probe`` candidates: all of them at the upright rotation first, the
+        next rotation only if none reached ``min_screen``; later candidates at the heading found (or at every
+        rotation while none is). Stops at the first candidate reaching ``early_exit``.
+        """
+        c_ = self.conf
+        best = {"rot": rots[0], "score": -1}
+        n = 0
+
+        def screen(c: Candidate, k: int) -> bool:
+            nonlocal n
+            c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
+            n += 1
+            if c.screen > best["score"] and c.rot_k == k:
+                best.update(rot=k, score=c.screen)
+            return c.screen >= c_["early_exit"]
+
+        probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]):]
+        for k in rots:
+            if any(screen(c, k) for c in probe):
+                return n
+            if best["score"] >= c_["min_screen"]:
+                break
+        for c in rest:
+            for k in [best["rot"]] + [r for r in rots if r != best["rot"]]:
+                if k != best["rot"] and best["score"] >= c_["min_screen"]:
+                    break  # the heading is settled
+                if screen(c, k):
+                    return n
+        return n
+
+    def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
+        t0 = time.perf_counter()
+        tfs = self.tile_features(tile_ids)
+        t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
+        cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
+        rots = [k % 4 for k in self.conf["rotations"]]
+        n_screened = n_verified = 0
+        query = {}  # rot_k -> features, extracted on first use: an upright photo that matches costs one extraction
+
+        def features(k):
+            nonlocal t_extract
+            if k not in query:
+                t = time.perf_counter()
+                query[k] = extract(self.extractor, image, self.conf["query_side"], k)
+                t_extract += time.perf_counter() - t
+            return query[k]
+
+        if self.conf["screen"]:
+            n_screened = self._screen(cands, rots, features, tfs)
+            screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
+            accept = self.conf["accept_screen"]
+            if screened and accept is not None and screened[0].screen >= accept:
+                screened = []  # clearly verified by the screen alone: the matcher would only cost time
+            to_verify = [(c, [c.rot_k]) for c in screened[: self.conf["max_verify"]]]
+            until_pass = True
+        else:  # the straightforward loop: the matcher on every candidate x rotation
+            to_verify, until_pass = [(c, rots) for c in cands], False
+        for c, ks in to_verify:
+            for k in ks:
+                c.take(*self.match_pair(features(k), tfs[c.tile_id]), k, "verify")
+                n_verified += 1
+            if until_pass and c.inliers >= self.conf["min_inliers"] and self.doubt(c) is None:
+                break
+        order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))
+        total = time.perf_counter() - t0
+        return Reranked(order[: top_k] if top_k else order,
+                        {"local_features": t_extract * 1000, "rerank": (total - t_extract) * 1000},
+                        n_screened, n_verified, query)

@@ -1,0 +1,126 @@
+"""The local-feature store: features per tile in HDF5, one group per tile, surviving interruption.
+
+A group exists only once fully written (written under a temporary name, then renamed). Encodings (format
+:data:`FEATURE_FORMAT`) keep a tile of the default re-ranker (XFeat, 2048 x 64-d) under 200 KB: see
+:meth:`FeatureStore.encode`. Keyed by a hash of its configuration (:func:`aeroloc.core.io.config_key`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from aeroloc.core.errors import AerolocError
+
+
+# Version of the FeatureStore encoding; part of the store's directory key (localfeatures.local_key) so a store
+# written in another format is never mixed with this one. 1: float16 descriptors; 2: int8 unit-norm descriptors.
+FEATURE_FORMAT = 2
+QUANT_SCALE = 127  # int8 descriptors: x_stored = round(x * QUANT_SCALE), read back as x_stored / QUANT_SCALE
+
+
+class FeatureStore:
+    """Local features per tile in one HDF5 file.
+
+    On disk (``encode``): L2-normalised descriptors as int8 (``round(x * 127)``, attribute ``quant_scale``; a
+    component of a unit vector is in [-1, 1] so the error is <= 0.5/127), half the bytes of float16, and
+    descriptors dominate a tile (XFeat's 2048 x 64: 128 KB instead of 256 KB).
+    Other float descriptors (e.g. plain SIFT) and scores stay float16. Keypoints stay float32 (sub-pixel
+    positions feed the homographies) unless float16 holds them exactly (XFeat on a 512 px tile: half-pixel
+    grid < 1024), which is checked per tile, so it is lossless. Reading gives float32 and also understands
+    format-1 groups (float16 descriptors without ``quant_scale``).
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def _open(self, mode):
+        import h5py
+
+        try:
+            return h5py.File(self.path, mode)
+        except OSError as exc:
+            if mode == "a" and self.path.exists():  # a crash mid-write can corrupt HDF5: start afresh
+                self.path.unlink()
+                return h5py.File(self.path, mode)
+            raise AerolocError(f"{self.path}: cannot open feature store ({exc})") from None
+
+    def names(self) -> set[str]:
+        if not self.path.is_file():
+            return set()
+        with self._open("r") as f:
+            return {k for k in f.keys() if not k.startswith("~")}
+
+    @staticmethod
+    def encode(key: str, value) -> tuple[np.ndarray, dict]:
+        """(array to store, dataset attributes) for one feature array; see the class docstring."""
+        v = np.asarray(value)
+        if v.dtype.kind != "f":
+            return v, {}
+        if key == "descriptors":
+            x = v.astype(np.float32)
+            norms = np.linalg.norm(x, axis=1) if x.ndim == 2 else np.array([np.nan])
+            if np.all(np.abs(norms - 1) <= 1e-2):  # NaN/inf rows fail this and keep float16
+                q = np.clip(np.rint(x * QUANT_SCALE), -QUANT_SCALE, QUANT_SCALE).astype(np.int8)
+                return q, {"quant_scale": QUANT_SCALE}
+            return v.astype(np.float16), {}
+        if key == "scores":
+            return v.astype(np.float16), {}
+        if key == "keypoints" and v.dtype != np.float16:
+            h = v.astype(np.float16)
+            if np.array_equal(h.astype(v.dtype), v):  # lossless (NaN never compares equal: stays as is)
+                return h, {}
+        return v, {}
+
+    @staticmethod
+    def decode(dataset) -> np.ndarray:
+        """The stored array back as written (float arrays as float32); format-1 groups have no quant_scale."""
+        v = dataset[()]
+        scale = dataset.attrs.get("quant_scale")
+        if scale is not None:
+            return v.astype(np.float32) / np.float32(scale)
+        if isinstance(v, np.ndarray) and v.dtype == np.float16:
+            return v.astype(np.float32)
+        return v
+
+    def write_many(self, items: dict[str, dict]) -> None:
+        with self._open("a") as f:
+            for name, feats in items.items():
+                tmp = "~" + name
+                if tmp in f:
+                    del f[tmp]
+                g = f.create_group(tmp)
+                for k, v in feats.items():
+                    v, attrs = self.encode(k, v)
+                    ds = g.create_dataset(k, data=v)
+                    ds.attrs.update(attrs)
+                if name in f:
+                    del f[name]
+                f.move(tmp, name)
+            f.flush()
+
+    def reader(self):
+        """Context manager yielding ``get(name) -> Features`` (float arrays back as float32, see ``decode``)."""
+        store = self
+
+        class _Reader:
+            def __enter__(self):
+                self.f = store._open("r")
+                return self
+
+            def __exit__(self, *exc):
+                self.f.close()
+
+            def get(self, name: str) -> dict:
+                if name not in self.f:
+                    raise AerolocError(f"{store.path}: no features for tile {name}")
+                g = self.f[name]
+                return {k: store.decode(g[k]) for k in g.keys()}
+
+        return _Reader()
+
+    def bytes_per_item(self) -> float:
+        """Bytes on disk per stored tile: the whole file (HDF5 metadata, leftovers of interrupted writes) / tiles."""
+        n = len(self.names())
+        return self.path.stat().st_size / n if n else 0.0

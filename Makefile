@@ -4,7 +4,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-stamp
 PYTEST_ARGS ?= -n 2 -q
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	@# headless Chromium renders the HTML benchmark report in its test (Debian package; root on CI machines)
@@ -21,7 +21,13 @@ setup: $(STAMP)
 demo: setup
 	$(VENV)/bin/aeroloc demo
 
-test: setup
+# lint: ruff (lint + format) and the import layers (pyproject.toml [tool.importlinter]); part of `make test`
+lint: setup
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/lint-imports
+
+test: lint
 	$(VENV)/bin/pytest $(PYTEST_ARGS)
 
 clean:

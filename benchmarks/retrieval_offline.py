@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from aeroloc.bench.metrics import tile_contains
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
-from aeroloc.maps.sources import open_map
-from aeroloc.bench.metrics import tile_contains
-from aeroloc.retrieval.models import build_method
 from aeroloc.core.queries import load_queries
+from aeroloc.maps.sources import open_map
 from aeroloc.maps.tiling import TileGrid
+from aeroloc.retrieval.models import build_method
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "naip-nd"
 
@@ -120,7 +120,7 @@ def timing(model, tile_images, query_images, batch: int = 16) -> dict:
         model(model.preprocess(tile_images[0])[None])  # warm-up
         t0 = time.perf_counter()
         for i in range(0, len(tile_images), batch):
-            model(torch.stack([model.preprocess(im) for im in tile_images[i:i + batch]]))
+            model(torch.stack([model.preprocess(im) for im in tile_images[i : i + batch]]))
         per_tile = (time.perf_counter() - t0) * 1000 / len(tile_images)
         t0 = time.perf_counter()
         for im in query_images:
@@ -132,12 +132,14 @@ def timing(model, tile_images, query_images, batch: int = 16) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=DATA)
-    p.add_argument("--tiles", nargs="+", default=["200:0.5", "200:0", "256:0.5"],
-                   help="tile side px : overlap")
+    p.add_argument("--tiles", nargs="+", default=["200:0.5", "200:0", "256:0.5"], help="tile side px : overlap")
     p.add_argument("--only", default="", help="run only rows whose label contains this text")
     p.add_argument("--quick", action="store_true", help="only the default configurations")
-    p.add_argument("--time", default="xfeat k128 x1.5 = default,effnet s5 k128 lp64 grey-std = default,"
-                   "effnet s5 rot4", help="labels (comma-separated) whose speed is measured")
+    p.add_argument(
+        "--time",
+        default="xfeat k128 x1.5 = default,effnet s5 k128 lp64 grey-std = default,effnet s5 rot4",
+        help="labels (comma-separated) whose speed is measured",
+    )
     p.add_argument("--threads", type=int, default=1, help="torch threads (1: steadier timings on a shared machine)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -154,12 +156,18 @@ def main(argv=None) -> int:
         tiles, tile_images = read_tiles(args.data / "map_20200831.tif", side, overlap)
         truths = {n: hits(tiles, qs) for n, (qs, _) in qsets.items()}
         rnd = {n: random_recall(t) for n, t in truths.items()}
-        print(f"\n## tiles {side} px ({side * 5} m), overlap {overlap}: {len(tiles)} tiles; queries "
-              + ", ".join(f"{n} {len(q)}" for n, (q, _) in qsets.items()))
-        print(f"{'method':40s} | {'dev R@1':>7s} {'R@5':>5s} {'R@10':>5s} | {'rot R@1':>7s} {'R@5':>5s} {'R@10':>5s} |"
-              f" {'dim':>5s} {'bytes':>6s} | {'tile ms':>7s} {'query ms':>8s}")
-        print(f"{'random ranking':40s} | {rnd['dev'][1]:7.3f} {rnd['dev'][5]:5.3f} {rnd['dev'][10]:5.3f} | "
-              f"{rnd['dev-rotated'][1]:7.3f} {rnd['dev-rotated'][5]:5.3f} {rnd['dev-rotated'][10]:5.3f} |")
+        print(
+            f"\n## tiles {side} px ({side * 5} m), overlap {overlap}: {len(tiles)} tiles; queries "
+            + ", ".join(f"{n} {len(q)}" for n, (q, _) in qsets.items())
+        )
+        print(
+            f"{'method':40s} | {'dev R@1':>7s} {'R@5':>5s} {'R@10':>5s} | {'rot R@1':>7s} {'R@5':>5s} {'R@10':>5s} |"
+            f" {'dim':>5s} {'bytes':>6s} | {'tile ms':>7s} {'query ms':>8s}"
+        )
+        print(
+            f"{'random ranking':40s} | {rnd['dev'][1]:7.3f} {rnd['dev'][5]:5.3f} {rnd['dev'][10]:5.3f} | "
+            f"{rnd['dev-rotated'][1]:7.3f} {rnd['dev-rotated'][5]:5.3f} {rnd['dev-rotated'][10]:5.3f} |"
+        )
         for label, method, conf in rows:
             if (method, json.dumps(conf, sort_keys=True)) not in models:
                 models[(method, json.dumps(conf, sort_keys=True))] = build_method(method, conf)
@@ -175,9 +183,12 @@ def main(argv=None) -> int:
             timed_here = label in timed and spec == args.tiles[0]
             speed = timing(model, tile_images, qsets["dev"][1][:40]) if timed_here else None
             sp = f"{speed['tile_ms']:7.1f} {speed['query_ms']:8.1f}" if speed else f"{'':7s} {'':8s}"
-            print(f"{label:40s} | {r['dev'][1]:7.3f} {r['dev'][5]:5.3f} {r['dev'][10]:5.3f} | "
-                  f"{r['dev-rotated'][1]:7.3f} {r['dev-rotated'][5]:5.3f} {r['dev-rotated'][10]:5.3f} | "
-                  f"{model.dim:5d} {model.dim * 2:6d} | {sp}", flush=True)
+            print(
+                f"{label:40s} | {r['dev'][1]:7.3f} {r['dev'][5]:5.3f} {r['dev'][10]:5.3f} | "
+                f"{r['dev-rotated'][1]:7.3f} {r['dev-rotated'][5]:5.3f} {r['dev-rotated'][10]:5.3f} | "
+                f"{model.dim:5d} {model.dim * 2:6d} | {sp}",
+                flush=True,
+            )
     return 0
 
 

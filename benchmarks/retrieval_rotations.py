@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aeroloc.retrieval.database import Database, build_global
-from aeroloc.core.images import read_image
 from aeroloc.bench.metrics import Result, evaluate, tile_contains
+from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
-from aeroloc.retrieval.retriever import Retriever
 from aeroloc.maps.tiling import write_tiles
+from aeroloc.retrieval.database import Database, build_global
+from aeroloc.retrieval.retriever import Retriever
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "naip-nd"
 NS = (1, 5, 10)
@@ -47,8 +47,11 @@ def run_set(db: Database, retriever: Retriever, queries, images, k: int) -> dict
         results.append(Result(q.name, lat, lon, tuple(r.tile_ids)))
         t_desc.append(r.times_ms["descriptor"])
     m = evaluate(results, queries, db.tiles, ns=NS)
-    return {**{n: m[f"vpr_recall@{n}"] for n in NS}, "ms": float(np.median(t_desc)),
-            "per_query": {p["name"]: p["vpr_rank"] for p in m["per_query"]}}
+    return {
+        **{n: m[f"vpr_recall@{n}"] for n in NS},
+        "ms": float(np.median(t_desc)),
+        "per_query": {p["name"]: p["vpr_rank"] for p in m["per_query"]},
+    }
 
 
 def main(argv=None) -> int:
@@ -57,8 +60,13 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(DATA), help="the naip-nd folder")
     ap.add_argument("--method", default="effnet-vlad")
     ap.add_argument("--rotations", type=int, nargs="+", default=[1, 4, 8], help="query headings searched")
-    ap.add_argument("--pooled", type=int, nargs="*", default=[],
-                    help="also DenseVLAD conf rotations=K (pooled into one descriptor, tiles and queries)")
+    ap.add_argument(
+        "--pooled",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also DenseVLAD conf rotations=K (pooled into one descriptor, tiles and queries)",
+    )
     ap.add_argument("--sets", nargs="+", default=["dev-rotated", "dev"])
     ap.add_argument("--per-query", action="store_true", help="print each query's rank of the first true tile")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1: steadier times on a shared machine)")
@@ -88,8 +96,10 @@ def main(argv=None) -> int:
         for name, (qs, ims) in sets.items():
             for k in args.rotations:
                 r = run_set(db, retriever, qs, ims, k)
-                print(f"{name:<12}{label:<22}{k:>3}" + "".join(f"{100 * r[n]:>7.1f}" for n in NS)
-                      + f"{r['ms']:>10.1f}", flush=True)
+                print(
+                    f"{name:<12}{label:<22}{k:>3}" + "".join(f"{100 * r[n]:>7.1f}" for n in NS) + f"{r['ms']:>10.1f}",
+                    flush=True,
+                )
                 if args.per_query:
                     print("   ranks:", " ".join("-" if v is None else str(v) for v in r["per_query"].values()))
     return 0

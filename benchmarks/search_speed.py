@@ -63,8 +63,10 @@ def main():
     x = clustered(rng, a.n_flat, a.dim, centres)
     q = clustered(rng, a.queries, a.dim, centres)
     index = build_index(x, "Flat")
-    print(f"Flat  n={a.n_flat:>8} dim={a.dim}: {timed_search(index, q, 20):.3f} ms/query in a batch of "
-          f"{len(q)}, {one_by_one(index, q, 20):.3f} ms alone; {a.dim * 4} B/vector (store: float16 {a.dim * 2} B)")
+    print(
+        f"Flat  n={a.n_flat:>8} dim={a.dim}: {timed_search(index, q, 20):.3f} ms/query in a batch of "
+        f"{len(q)}, {one_by_one(index, q, 20):.3f} ms alone; {a.dim * 4} B/vector (store: float16 {a.dim * 2} B)"
+    )
     exact = index
     for factory, probes in (("IVF100,Flat", (4, 8)), ("HNSW32", (64,))):
         approx = build_index(x, factory)
@@ -73,8 +75,10 @@ def main():
                 faiss.extract_index_ivf(approx).nprobe = p
             else:
                 approx.hnsw.efSearch = p
-            print(f"{factory} n={a.n_flat} dim={a.dim} {'nprobe' if 'IVF' in factory else 'efSearch'}={p}: "
-                  f"{one_by_one(approx, q, 20):.3f} ms alone, recall@20 vs exact {recall_vs_exact(approx, exact, q, 20):.3f}")
+            print(
+                f"{factory} n={a.n_flat} dim={a.dim} {'nprobe' if 'IVF' in factory else 'efSearch'}={p}: "
+                f"{one_by_one(approx, q, 20):.3f} ms alone, recall@20 vs exact {recall_vs_exact(approx, exact, q, 20):.3f}"
+            )
 
     if not a.n_large:  # --n-large 0: the 10^4 part only
         return
@@ -99,8 +103,10 @@ def main():
     for nprobe in (8, 32):
         faiss.extract_index_ivf(index).nprobe = nprobe
         ms = timed_search(index, q, 20)
-        print(f"{a.factory} n={a.n_large} dim={d} nprobe={nprobe}: {ms:.3f} ms/query "
-              f"(train {t_train:.0f} s, add {t_add:.0f} s, {faiss.serialize_index(index).nbytes / a.n_large:.0f} B/vector)")
+        print(
+            f"{a.factory} n={a.n_large} dim={d} nprobe={nprobe}: {ms:.3f} ms/query "
+            f"(train {t_train:.0f} s, add {t_add:.0f} s, {faiss.serialize_index(index).nbytes / a.n_large:.0f} B/vector)"
+        )
 
 
 if __name__ == "__main__":

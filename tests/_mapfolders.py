@@ -50,8 +50,9 @@ class SeedFolder:
     corners: dict  # (r, c) -> (tl_lat, tl_lon, br_lat, br_lon) as written
 
 
-def build_seed_folder(folder: Path, naip_map: Path, n_rows=3, n_cols=4, tile_w=64, tile_h=48,
-                      origin=(47.03, -99.18), res_m=7.25) -> SeedFolder:
+def build_seed_folder(
+    folder: Path, naip_map: Path, n_rows=3, n_cols=4, tile_w=64, tile_h=48, origin=(47.03, -99.18), res_m=7.25
+) -> SeedFolder:
     """Cut a real image into n_rows x n_cols PNG tiles on a Web Mercator grid of ``res_m`` metres/px."""
     folder.mkdir(parents=True, exist_ok=True)
     image = naip_pixels(naip_map, n_rows * tile_h, n_cols * tile_w)
@@ -61,7 +62,7 @@ def build_seed_folder(folder: Path, naip_map: Path, n_rows=3, n_cols=4, tile_w=6
     for r in range(n_rows):
         for c in range(n_cols):
             name = f"tile_{r}_{c}.png"
-            Image.fromarray(image[r * tile_h:(r + 1) * tile_h, c * tile_w:(c + 1) * tile_w]).save(folder / name)
+            Image.fromarray(image[r * tile_h : (r + 1) * tile_h, c * tile_w : (c + 1) * tile_w]).save(folder / name)
             tl = merc_to_latlon(x0 + c * tile_w * res_m, y0 - r * tile_h * res_m)
             br = merc_to_latlon(x0 + (c + 1) * tile_w * res_m, y0 - (r + 1) * tile_h * res_m)
             corners[(r, c)] = (*tl, *br)
@@ -70,8 +71,9 @@ def build_seed_folder(folder: Path, naip_map: Path, n_rows=3, n_cols=4, tile_w=6
     return SeedFolder(folder, image, tile_w, tile_h, n_rows, n_cols, corners)
 
 
-def build_xyz_folder(folder: Path, naip_map: Path, z=14, x0=3679, y0=5761, n_cols=3, n_rows=2, size=64,
-                     skip=()) -> np.ndarray:
+def build_xyz_folder(
+    folder: Path, naip_map: Path, z=14, x0=3679, y0=5761, n_cols=3, n_rows=2, size=64, skip=()
+) -> np.ndarray:
     """Write ``folder/z/x/y.png`` tiles of ``size`` px (real pixels); ``skip`` lists (x, y) left out."""
     image = naip_pixels(naip_map, n_rows * size, n_cols * size)
     for r in range(n_rows):
@@ -80,5 +82,5 @@ def build_xyz_folder(folder: Path, naip_map: Path, z=14, x0=3679, y0=5761, n_col
                 continue
             d = folder / str(z) / str(x0 + c)
             d.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(image[r * size:(r + 1) * size, c * size:(c + 1) * size]).save(d / f"{y0 + r}.png")
+            Image.fromarray(image[r * size : (r + 1) * size, c * size : (c + 1) * size]).save(d / f"{y0 + r}.png")
     return image

@@ -65,8 +65,24 @@ def naip_db_build(naip_tiles_db, naip_map):
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        code = main(["build", str(naip_map), "--zoom", str(NAIP_DB_ZOOM), "--overlap", str(NAIP_DB_OVERLAP),
-                     "--out", str(naip_tiles_db), "--method", "xfeat-vlad", "--local", "xfeat-lighterglue", "--device", "cpu"])
+        code = main(
+            [
+                "build",
+                str(naip_map),
+                "--zoom",
+                str(NAIP_DB_ZOOM),
+                "--overlap",
+                str(NAIP_DB_OVERLAP),
+                "--out",
+                str(naip_tiles_db),
+                "--method",
+                "xfeat-vlad",
+                "--local",
+                "xfeat-lighterglue",
+                "--device",
+                "cpu",
+            ]
+        )
     assert code == 0, out.getvalue()
     return types.SimpleNamespace(folder=naip_tiles_db, stdout=out.getvalue())
 

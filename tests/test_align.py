@@ -42,12 +42,15 @@ def similarity(scale: float, tx: float, ty: float) -> np.ndarray:
     return np.array([[scale, 0, tx], [0, scale, ty], [0, 0, 1]], np.float64)
 
 
-@pytest.mark.parametrize("tile_id, scale, tx, ty", [
-    ("r002c003", 1.0, 30.0, 40.0),  # interior tile, pure translation
-    ("r002c003", 0.8, 12.5, 101.25),  # translation + scale
-    ("r000c000", 1.3, 3.0, 7.0),  # top-left tile of the map
-    ("r004c006", 0.7, 150.0, 180.0),  # bottom-right tile (snapped to the map edge)
-])
+@pytest.mark.parametrize(
+    "tile_id, scale, tx, ty",
+    [
+        ("r002c003", 1.0, 30.0, 40.0),  # interior tile, pure translation
+        ("r002c003", 0.8, 12.5, 101.25),  # translation + scale
+        ("r000c000", 1.3, 3.0, 7.0),  # top-left tile of the map
+        ("r004c006", 0.7, 150.0, 180.0),  # bottom-right tile (snapped to the map edge)
+    ],
+)
 def test_centre_maps_to_hand_computed_latlon(grid, tile_id, scale, tx, ty):
     tiles, size, map_px_to_latlon = grid
     tile = tiles[tile_id]
@@ -69,7 +72,7 @@ def test_centre_just_outside_the_tile_is_extrapolated_not_clamped(grid):
     assert a.localized
     lat, lon = map_px_to_latlon(tile.col + tile.width + 60, tile.row + 10 + QUERY[1] / 2)
     assert abs(a.lat - lat) < 1e-6 and abs(a.lon - lon) < 1e-6
-    inside_lat, inside_lon = tile.pixel_to_latlon(tile.width, 10 + QUERY[1] / 2)
+    _inside_lat, inside_lon = tile.pixel_to_latlon(tile.width, 10 + QUERY[1] / 2)
     assert a.lon > inside_lon + 1e-4  # ~60 px x 5 m east of the tile's right edge
 
 

@@ -49,11 +49,20 @@ def make_project(tmp_path: Path, naip_map=None, naip_dev=None) -> Path:
 
 
 def base_doc(**over) -> dict:
-    doc = {"name": "t", "maps": [{"name": "m", "path": "data/map.tif"}],
-           "queries": [{"name": "q", "path": "data/queries.csv", "map": "m"}],
-           "methods": ["xfeat-vlad"], "rerankers": ["none", "xfeat-lighterglue"], "zooms": [1, 2],
-           "overlaps": [0, 0.5], "top_n": [5, 20], "top_k": 1, "thresholds_m": [10, 25], "device": "cpu",
-           "output": "out/t"}
+    doc = {
+        "name": "t",
+        "maps": [{"name": "m", "path": "data/map.tif"}],
+        "queries": [{"name": "q", "path": "data/queries.csv", "map": "m"}],
+        "methods": ["xfeat-vlad"],
+        "rerankers": ["none", "xfeat-lighterglue"],
+        "zooms": [1, 2],
+        "overlaps": [0, 0.5],
+        "top_n": [5, 20],
+        "top_k": 1,
+        "thresholds_m": [10, 25],
+        "device": "cpu",
+        "output": "out/t",
+    }
     doc.update(over)
     return doc
 
@@ -87,51 +96,84 @@ class FakePipeline:
         for i, (name, lat, lon) in enumerate(truth):
             err = None if (config.reranker and i % 7 == 3) else (3.0 + (i % 11) * 4.0) * config.zoom
             est = offset_latlon(lat, lon, err, 0.0) if err is not None else (None, None)
-            rows.append({"name": name, "true_lat": lat, "true_lon": lon,
-                         "est_lat": None if err is None else float(est[0]),
-                         "est_lon": None if err is None else float(est[1]),
-                         "error_m": math.inf if err is None else err, "status": "ok" if err is not None else
-                         "not localized: too few inliers", "inliers": 0 if err is None else 200 - i,
-                         "top_tiles": "r000c000;r000c001", "vpr_rank": i % 3,
-                         "match_image": str(self.match_image) if self.match_image and i < 3 else None})
+            rows.append(
+                {
+                    "name": name,
+                    "true_lat": lat,
+                    "true_lon": lon,
+                    "est_lat": None if err is None else float(est[0]),
+                    "est_lon": None if err is None else float(est[1]),
+                    "error_m": math.inf if err is None else err,
+                    "status": "ok" if err is not None else "not localized: too few inliers",
+                    "inliers": 0 if err is None else 200 - i,
+                    "top_tiles": "r000c000;r000c001",
+                    "vpr_rank": i % 3,
+                    "match_image": str(self.match_image) if self.match_image and i < 3 else None,
+                }
+            )
         errs = [r["error_m"] for r in rows]
         n = len(rows)
-        metrics = {"n_queries": n, "median_error_m": sorted(e for e in errs if math.isfinite(e))[n // 4],
-                   "p90_error_m": 40.0, "not_localized": sum(not math.isfinite(e) for e in errs) / n}
+        metrics = {
+            "n_queries": n,
+            "median_error_m": sorted(e for e in errs if math.isfinite(e))[n // 4],
+            "p90_error_m": 40.0,
+            "not_localized": sum(not math.isfinite(e) for e in errs) / n,
+        }
         for t in config.thresholds_m:
             metrics[f"georef_recall@{t:g}m"] = sum(e <= t for e in errs) / n
         for k in (1, 5, 10, 20):
             metrics[f"retrieval_vpr_recall@{k}"] = min(1.0, 0.3 + 0.1 * k / config.zoom)
-            metrics[f"vpr_recall@{k}"] = min(1.0, metrics[f"retrieval_vpr_recall@{k}"] + (0.2 if config.reranker else 0))
-        timing = {"descriptor_ms": 7.0, "search_ms": 0.2, "local_features_ms": 90.0 if config.reranker else 0.0,
-                  "rerank_ms": 1500.0 if config.reranker else 0.0, "align_ms": 1.0 if config.reranker else 0.0,
-                  "total_ms_per_query": 1598.2 if config.reranker else 7.2, "localize_total_s": 12.0}
-        memory = {"descriptor_bytes_per_tile": 4096.0, "local_bytes_per_tile": 60000.0, "index_bytes": 4096 * 30,
-                  "peak_rss_mb": 900.0}
+            metrics[f"vpr_recall@{k}"] = min(
+                1.0, metrics[f"retrieval_vpr_recall@{k}"] + (0.2 if config.reranker else 0)
+            )
+        timing = {
+            "descriptor_ms": 7.0,
+            "search_ms": 0.2,
+            "local_features_ms": 90.0 if config.reranker else 0.0,
+            "rerank_ms": 1500.0 if config.reranker else 0.0,
+            "align_ms": 1.0 if config.reranker else 0.0,
+            "total_ms_per_query": 1598.2 if config.reranker else 7.2,
+            "localize_total_s": 12.0,
+        }
+        memory = {
+            "descriptor_bytes_per_tile": 4096.0,
+            "local_bytes_per_tile": 60000.0,
+            "index_bytes": 4096 * 30,
+            "peak_rss_mb": 900.0,
+        }
         return {"metrics": metrics, "rows": rows, "timing": timing, "memory": memory, "n_tiles": 30, "n_queries": n}
 
 
 # --- experiment files ---------------------------------------------------------------------------------------
-@pytest.mark.parametrize("change, field", [
-    ({"methods": ["xfeat-vlad", "no-such-method"]}, "methods[1]"),
-    ({"rerankers": ["none", "bogus-glue"]}, "rerankers[1]"),
-    ({"maps": [{"name": "m", "path": "data/missing.tif"}]}, "maps[0].path"),
-    ({"queries": [{"name": "q", "path": "nowhere/queries.csv", "map": "m"}]}, "queries[0].path"),
-    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "other"}]}, "queries[0].map"),
-    ({"zooms": [1, 0]}, "zooms[1]"),
-    ({"zooms": [-0.5]}, "zooms[0]"),
-    ({"overlaps": [0, 1.0]}, "overlaps[1]"),
-    ({"overlaps": [-0.1]}, "overlaps[0]"),
-    ({"top_n": [0]}, "top_n"),
-    ({"top_k": 30}, "top_k"),
-    ({"thresholds_m": [10, -1]}, "thresholds_m[1]"),
-    ({"maps": [{"name": "m", "path": "data/map.tif", "tile_m": -5}]}, "maps[0].tile_m"),
-    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 0}]}, "queries[0].limit"),
-    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "north_up": "yes"}]}, "queries[0].north_up"),
-    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": 0}]}, "queries[0].query_gsd"),
-    ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": "5"}]}, "queries[0].query_gsd"),
-    ({"zoom": [1]}, "zoom"),  # typo of zooms: unknown fields are errors, not silently ignored
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"methods": ["xfeat-vlad", "no-such-method"]}, "methods[1]"),
+        ({"rerankers": ["none", "bogus-glue"]}, "rerankers[1]"),
+        ({"maps": [{"name": "m", "path": "data/missing.tif"}]}, "maps[0].path"),
+        ({"queries": [{"name": "q", "path": "nowhere/queries.csv", "map": "m"}]}, "queries[0].path"),
+        ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "other"}]}, "queries[0].map"),
+        ({"zooms": [1, 0]}, "zooms[1]"),
+        ({"zooms": [-0.5]}, "zooms[0]"),
+        ({"overlaps": [0, 1.0]}, "overlaps[1]"),
+        ({"overlaps": [-0.1]}, "overlaps[0]"),
+        ({"top_n": [0]}, "top_n"),
+        ({"top_k": 30}, "top_k"),
+        ({"thresholds_m": [10, -1]}, "thresholds_m[1]"),
+        ({"maps": [{"name": "m", "path": "data/map.tif", "tile_m": -5}]}, "maps[0].tile_m"),
+        ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 0}]}, "queries[0].limit"),
+        (
+            {"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "north_up": "yes"}]},
+            "queries[0].north_up",
+        ),
+        ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": 0}]}, "queries[0].query_gsd"),
+        (
+            {"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "query_gsd": "5"}]},
+            "queries[0].query_gsd",
+        ),
+        ({"zoom": [1]}, "zoom"),  # typo of zooms: unknown fields are errors, not silently ignored
+    ],
+)
 def test_validation_error_names_file_and_field(tmp_path, change, field):
     root = make_project(tmp_path)
     path = write_yaml(root, base_doc(**change))
@@ -189,8 +231,10 @@ def test_grid_expansion(tmp_path):
     (root / "copy").mkdir()
     shutil.copy(root / "data" / "map.tif", root / "copy" / "m.tif")
     shutil.copy(root / "data" / "queries.csv", root / "copy" / "q.csv")
-    moved = base_doc(maps=[{"name": "renamed", "path": "copy/m.tif"}],
-                     queries=[{"name": "q2", "path": "copy/q.csv", "map": "renamed"}])
+    moved = base_doc(
+        maps=[{"name": "renamed", "path": "copy/m.tif"}],
+        queries=[{"name": "q2", "path": "copy/q.csv", "map": "renamed"}],
+    )
     assert [c.key() for c in expand(load_experiment(write_yaml(root, moved, "moved.yaml")))] == keys
     # integer and float spellings of a zoom are one configuration
     assert expand(load_experiment(write_yaml(root, base_doc(zooms=[1.0, 2.0]), "f.yaml")))[0].key() == keys[0]
@@ -204,8 +248,13 @@ def test_query_limit_is_an_evenly_spaced_subset_and_part_of_the_key(tmp_path):
     assert sample_queries([1, 2], 5) == [1, 2] and sample_queries([1, 2], None) == [1, 2]
     root = make_project(tmp_path)
     full = expand(load_experiment(write_yaml(root, base_doc())))
-    limited = expand(load_experiment(write_yaml(root, base_doc(
-        queries=[{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 30}]), "l.yaml")))
+    limited = expand(
+        load_experiment(
+            write_yaml(
+                root, base_doc(queries=[{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 30}]), "l.yaml"
+            )
+        )
+    )
     assert {c.max_queries for c in full} == {None} and {c.max_queries for c in limited} == {30}
     assert not {c.key() for c in full} & {c.key() for c in limited}
 
@@ -228,8 +277,11 @@ def test_paper_experiments_validate():
     assert rerank.top_n == (20, 100)
     dense = expand(load_experiment(repo / "experiments" / "dense-stage.yaml"))
     assert {(c.queries_name, c.query_gsd, c.north_up) for c in dense} == {
-        ("naip-nd/dev", None, True), ("naip-nd/dev+dense", 5.0, True),
-        ("naip-nd/dev-rotated", None, False), ("naip-nd/dev-rotated+dense", 5.0, False)}
+        ("naip-nd/dev", None, True),
+        ("naip-nd/dev+dense", 5.0, True),
+        ("naip-nd/dev-rotated", None, False),
+        ("naip-nd/dev-rotated+dense", 5.0, False),
+    }
 
 
 # --- results store ------------------------------------------------------------------------------------------
@@ -258,8 +310,10 @@ def test_store_round_trip(tmp_path):
     # plain SQL sees the metrics as columns
     db = sqlite3.connect(tmp_path / "out" / "results.sqlite")
     r1 = db.execute(f"SELECT {column_name('retrieval_vpr_recall@1')}, georef_recall_at_10m FROM results").fetchone()
-    assert r1 == (pytest.approx(out["metrics"]["retrieval_vpr_recall@1"]),
-                  pytest.approx(out["metrics"]["georef_recall@10m"]))
+    assert r1 == (
+        pytest.approx(out["metrics"]["retrieval_vpr_recall@1"]),
+        pytest.approx(out["metrics"]["georef_recall@10m"]),
+    )
     with open(csv_path, newline="") as f:
         [exported] = list(csv.DictReader(f))
     assert float(exported["vpr_recall_at_5"]) == pytest.approx(out["metrics"]["vpr_recall@5"])
@@ -271,12 +325,20 @@ def test_store_not_localized_query_round_trips_as_none(tmp_path):
     exp = load_experiment(write_yaml(root, base_doc()))
     c = next(c for c in expand(exp) if c.reranker)
     out = FakePipeline()(c, tmp_path)
-    out["rows"].append({**out["rows"][0], "name": "zz-lost.jpg", "est_lat": None, "est_lon": None,
-                        "error_m": math.inf, "status": "not localized"})
+    out["rows"].append(
+        {
+            **out["rows"][0],
+            "name": "zz-lost.jpg",
+            "est_lat": None,
+            "est_lon": None,
+            "error_m": math.inf,
+            "status": "not localized",
+        }
+    )
     with ResultStore(tmp_path / "o") as store:
         run = store.start_run("t")
         store.add_result(run, c, out)
-        lost = [q for q in store.query_rows(run, c.key()) if q["name"] == "zz-lost.jpg"][0]
+        lost = next(q for q in store.query_rows(run, c.key()) if q["name"] == "zz-lost.jpg")
     assert lost["est_lat"] is None and lost["error_m"] is None and lost["status"] == "not localized"
 
 
@@ -289,8 +351,11 @@ def test_runner_resumes_after_interrupt(tmp_path, monkeypatch):
     n = len(expand(load_experiment(path)))
     # the outputs (plots take ~1 s each here) are built for real once, at the end
     built = []
-    monkeypatch.setattr(runner, "write_outputs", lambda exp, configs, store, run_id: built.append(run_id) or
-                        exp.output / f"report-{run_id}.html")
+    monkeypatch.setattr(
+        runner,
+        "write_outputs",
+        lambda exp, configs, store, run_id: built.append(run_id) or exp.output / f"report-{run_id}.html",
+    )
     first = FakePipeline(fail_at=2)
     with pytest.raises(KeyboardInterrupt):
         run_experiment(path, run_config=first, progress=False)
@@ -340,22 +405,40 @@ def test_cli_bench_reports_bad_experiment(tmp_path, capsys):
 
 # --- tables ------------------------------------------------------------------------------------------------
 def row(**kw) -> dict:
-    base = {"queries": "ds", "map": "m", "method": "xfeat-vlad", "reranker": None, "zoom": 1.0, "overlap": 0.0,
-            "top_n": 20, "top_k": 1, "tile_m": None, "config_key": str(kw)}
+    base = {
+        "queries": "ds",
+        "map": "m",
+        "method": "xfeat-vlad",
+        "reranker": None,
+        "zoom": 1.0,
+        "overlap": 0.0,
+        "top_n": 20,
+        "top_k": 1,
+        "tile_m": None,
+        "config_key": str(kw),
+    }
     base.update(kw)
     return base
 
 
 def recall_row(method, zoom, r1, r5, r10, **kw):
-    return row(method=method, zoom=zoom, **{"retrieval_vpr_recall@1": r1, "retrieval_vpr_recall@5": r5,
-                                           "retrieval_vpr_recall@10": r10}, **kw)
+    return row(
+        method=method,
+        zoom=zoom,
+        **{"retrieval_vpr_recall@1": r1, "retrieval_vpr_recall@5": r5, "retrieval_vpr_recall@10": r10},
+        **kw,
+    )
 
 
 def test_zoom_table_bolds_best_per_row_and_picks_best_zoom():
-    rows = [recall_row("a", 0.5, 0.40, 0.70, 0.80), recall_row("a", 1.0, 0.68, 0.90, 0.93),
-            recall_row("a", 2.0, 0.55, 0.92, 0.93),
-            recall_row("b", 0.5, 0.30, 0.50, 0.60), recall_row("b", 1.0, 0.20, 0.50, 0.70),
-            recall_row("b", 2.0, 0.10, 0.40, 0.65)]
+    rows = [
+        recall_row("a", 0.5, 0.40, 0.70, 0.80),
+        recall_row("a", 1.0, 0.68, 0.90, 0.93),
+        recall_row("a", 2.0, 0.55, 0.92, 0.93),
+        recall_row("b", 0.5, 0.30, 0.50, 0.60),
+        recall_row("b", 1.0, 0.20, 0.50, 0.70),
+        recall_row("b", 2.0, 0.10, 0.40, 0.65),
+    ]
     t = tables.sweep_table(rows, "zoom", "ds")
     assert [c.text for c in t.rows[0][:1]] == ["a"]
     a, b = t.rows
@@ -374,37 +457,69 @@ def test_zoom_table_bolds_best_per_row_and_picks_best_zoom():
 
 
 def test_overlap_table_and_single_value_sweeps():
-    rows = [row(overlap=o, **{"retrieval_vpr_recall@1": r, "retrieval_vpr_recall@5": r, "retrieval_vpr_recall@10": r})
-            for o, r in ((0.0, 0.5), (0.25, 0.6), (0.5, 0.6))]
+    rows = [
+        row(overlap=o, **{"retrieval_vpr_recall@1": r, "retrieval_vpr_recall@5": r, "retrieval_vpr_recall@10": r})
+        for o, r in ((0.0, 0.5), (0.25, 0.6), (0.5, 0.6))
+    ]
     t = tables.sweep_table(rows, "overlap", "ds")
     assert [c.text for c in t.rows[0][1:-1] if c.bold] == ["60.0"] * 6 and t.rows[0][-1].text == "0.25"
     assert tables.sweep_table(rows, "zoom", "ds") is None  # one zoom: no zoom table
 
 
 def test_time_memory_georef_tables_bold_best_per_column():
-    fast = row(reranker="xfeat-lighterglue", **{"descriptor_ms": 7.0, "search_ms": 0.3, "local_features_ms": 80.0,
-                                                "rerank_ms": 1500.0, "align_ms": 1.0, "total_ms_per_query": 1588.3,
-                                                "georef_recall@10m": 0.90, "georef_recall@25m": 0.98,
-                                                "median_error_m": 3.0, "p90_error_m": 12.0, "not_localized": 0.02,
-                                                "descriptor_bytes_per_tile": 2048, "local_bytes_per_tile": 60000,
-                                                "index_bytes": 10240, "peak_rss_mb": 800, "n_tiles": 12})
-    slow = row(reranker="aliked-lightglue", **{"descriptor_ms": 7.5, "search_ms": 0.2, "local_features_ms": 600.0,
-                                               "rerank_ms": 4400.0, "align_ms": 1.0, "total_ms_per_query": 5008.7,
-                                               "georef_recall@10m": 0.95, "georef_recall@25m": 0.98,
-                                               "median_error_m": 1.7, "p90_error_m": 6.0, "not_localized": 0.0,
-                                               "descriptor_bytes_per_tile": 2048, "local_bytes_per_tile": 90000,
-                                               "index_bytes": 10240, "peak_rss_mb": 1200, "n_tiles": 12})
+    fast = row(
+        reranker="xfeat-lighterglue",
+        **{
+            "descriptor_ms": 7.0,
+            "search_ms": 0.3,
+            "local_features_ms": 80.0,
+            "rerank_ms": 1500.0,
+            "align_ms": 1.0,
+            "total_ms_per_query": 1588.3,
+            "georef_recall@10m": 0.90,
+            "georef_recall@25m": 0.98,
+            "median_error_m": 3.0,
+            "p90_error_m": 12.0,
+            "not_localized": 0.02,
+            "descriptor_bytes_per_tile": 2048,
+            "local_bytes_per_tile": 60000,
+            "index_bytes": 10240,
+            "peak_rss_mb": 800,
+            "n_tiles": 12,
+        },
+    )
+    slow = row(
+        reranker="aliked-lightglue",
+        **{
+            "descriptor_ms": 7.5,
+            "search_ms": 0.2,
+            "local_features_ms": 600.0,
+            "rerank_ms": 4400.0,
+            "align_ms": 1.0,
+            "total_ms_per_query": 5008.7,
+            "georef_recall@10m": 0.95,
+            "georef_recall@25m": 0.98,
+            "median_error_m": 1.7,
+            "p90_error_m": 6.0,
+            "not_localized": 0.0,
+            "descriptor_bytes_per_tile": 2048,
+            "local_bytes_per_tile": 90000,
+            "index_bytes": 10240,
+            "peak_rss_mb": 1200,
+            "n_tiles": 12,
+        },
+    )
     t = tables.time_table([fast, slow], "ds")
-    bold = [[c.text for c in r[len(t.labels):] if c.bold] for r in t.rows]
+    bold = [[c.text for c in r[len(t.labels) :] if c.bold] for r in t.rows]
     assert bold[0] == ["7.0", "80.0", "1500.0", "1588.3"] and bold[1] == ["0.2"]  # align ties: no bold
     g = tables.georef_table([fast, slow], "ds")
-    assert [c.text for c in g.rows[1][len(g.labels):] if c.bold] == ["95.0", "1.7", "6.0", "0.0"]
-    assert [c.text for c in g.rows[0][len(g.labels):] if c.bold] == []  # ≤25 m: 98.0 twice, nothing stands out
+    assert [c.text for c in g.rows[1][len(g.labels) :] if c.bold] == ["95.0", "1.7", "6.0", "0.0"]
+    assert [c.text for c in g.rows[0][len(g.labels) :] if c.bold] == []  # ≤25 m: 98.0 twice, nothing stands out
     m = tables.memory_table([fast, slow], "ds")
-    assert [c.text for c in m.rows[0][len(m.labels):] if c.bold] == ["58.6", "800"]
-    assert [c.text for c in m.rows[1][len(m.labels):] if c.bold] == []
+    assert [c.text for c in m.rows[0][len(m.labels) :] if c.bold] == ["58.6", "800"]
+    assert [c.text for c in m.rows[1][len(m.labels) :] if c.bold] == []
     r = tables.rerank_table([dict(fast, **{"retrieval_vpr_recall@1": 0.68, "vpr_recall@1": 0.9})], "ds")
-    cells = r.rows[0][len(r.labels):]
+    cells = r.rows[0][len(r.labels) :]
     assert [c.text for c in cells] == ["68.0", "90.0", "1580"] and [c.bold for c in cells[:2]] == [False, True]
 
 
@@ -413,8 +528,16 @@ def test_plots_are_valid_pngs(tmp_path):
     from PIL import Image
 
     rows = [recall_row("a", z, 0.2 * z, 0.3 * z, 0.4 * z, reranker=None) for z in (0.5, 1.0, 2.0)]
-    rows += [dict(recall_row("a", 1.0, 0.5, 0.6, 0.7, reranker="xfeat-lighterglue", config_key="rr"),
-                  descriptor_ms=7.0, search_ms=0.2, local_features_ms=80.0, rerank_ms=1500.0, align_ms=1.0)]
+    rows += [
+        dict(
+            recall_row("a", 1.0, 0.5, 0.6, 0.7, reranker="xfeat-lighterglue", config_key="rr"),
+            descriptor_ms=7.0,
+            search_ms=0.2,
+            local_features_ms=80.0,
+            rerank_ms=1500.0,
+            align_ms=1.0,
+        )
+    ]
     errors = {"rr": [1.0, 2.5, 7.0, 30.0, None, 120.0]}
     made = plots.make_plots(rows, errors, tmp_path, thresholds=(10, 25))
     assert {p.key for p in made} == {"recall-zoom", "error-cdf", "time"}
@@ -444,10 +567,14 @@ def test_map_overlay_sits_on_the_map_footprint(naip_map):
     # the Web Mercator image's edges are the UTM footprint's extreme corners, to within one output pixel
     # (here 3 map pixels = 15 m), on every side
     m_per_deg_lat, m_per_deg_lon = 111_200.0, 111_200.0 * math.cos(math.radians(north))
-    gaps = [(south - s) * m_per_deg_lat, (n - north) * m_per_deg_lat, (west - w) * m_per_deg_lon,
-            (e - east) * m_per_deg_lon]
+    gaps = [
+        (south - s) * m_per_deg_lat,
+        (n - north) * m_per_deg_lat,
+        (west - w) * m_per_deg_lon,
+        (e - east) * m_per_deg_lon,
+    ]
     assert max(abs(g) for g in gaps) < 15.0, gaps
-    header, data = ov["url"].split(",", 1)
+    _header, data = ov["url"].split(",", 1)
     with Image.open(io.BytesIO(base64.b64decode(data))) as im:
         assert im.mode == "RGBA" and max(im.size) <= 420
         assert abs(im.width / im.height - (e - w) / (n - s) * math.cos(math.radians((n + s) / 2))) < 0.05
@@ -480,9 +607,24 @@ def chromium(*args, timeout=90) -> subprocess.CompletedProcess:
     exe = shutil.which("chromium")
     if exe is None:
         pytest.skip("chromium is not on PATH (Debian: apt-get install chromium); the report is not browser-tested")
-    return subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                           "--disable-dev-shm-usage", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [
+            exe,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--disable-dev-shm-usage",
+            *args,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def test_html_report_is_offline_and_renders_in_chromium(tmp_path, naip_map, naip_dev):
@@ -501,16 +643,22 @@ def test_html_report_is_offline_and_renders_in_chromium(tmp_path, naip_map, naip
     assert "class=thumb" in page  # match visualisations for the sample queries
 
     shot = tmp_path / "shot.png"
-    res = chromium(f"--user-data-dir={tmp_path / 'chrome'}", f"--screenshot={shot}", "--window-size=1280,2000",
-                   "--virtual-time-budget=4000", report.as_uri())
+    res = chromium(
+        f"--user-data-dir={tmp_path / 'chrome'}",
+        f"--screenshot={shot}",
+        "--window-size=1280,2000",
+        "--virtual-time-budget=4000",
+        report.as_uri(),
+    )
     assert shot.is_file(), res.stderr[-2000:]
     with Image.open(shot) as im:
         assert im.size == (1280, 2000)
         arr = np.asarray(im.convert("RGB")).astype(int)
     assert arr.std() > 20 and len(np.unique(arr.reshape(-1, 3)[::97], axis=0)) > 50  # a page, not blank
 
-    dom = chromium(f"--user-data-dir={tmp_path / 'chrome2'}", "--dump-dom", "--virtual-time-budget=4000",
-                   report.as_uri()).stdout
+    dom = chromium(
+        f"--user-data-dir={tmp_path / 'chrome2'}", "--dump-dom", "--virtual-time-budget=4000", report.as_uri()
+    ).stdout
     n_queries = len(read_truth(naip_dev))
     # Leaflet ran offline: the map container exists, the imagery overlay is placed, and the shown configuration
     # draws one interactive SVG path per marker/line (localized: line + 2 dots; not localized: 1 ring)
@@ -540,8 +688,10 @@ def test_north_up_query_sets_are_their_own_configurations_for_rerankers_only(tmp
     root = make_project(tmp_path)
     q = {"name": "q", "path": "data/queries.csv", "map": "m"}
     plain = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(queries=[q]))))}
-    north = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(
-        queries=[{**q, "north_up": True}]), "n.yaml")))}
+    north = {
+        c.reranker: c
+        for c in expand(load_experiment(write_yaml(root, base_doc(queries=[{**q, "north_up": True}]), "n.yaml")))
+    }
     assert north["xfeat-lighterglue"].north_up and north["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
     assert "north-up" in north["xfeat-lighterglue"].label()
     assert not north[None].north_up and north[None].key() == plain[None].key()  # retrieval ignores the heading
@@ -551,8 +701,10 @@ def test_a_query_resolution_makes_dense_configurations_for_rerankers_only(tmp_pa
     root = make_project(tmp_path)
     q = {"name": "q", "path": "data/queries.csv", "map": "m"}
     plain = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(queries=[q]))))}
-    dense = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(
-        queries=[{**q, "query_gsd": 5}]), "d.yaml")))}
+    dense = {
+        c.reranker: c
+        for c in expand(load_experiment(write_yaml(root, base_doc(queries=[{**q, "query_gsd": 5}]), "d.yaml")))
+    }
     assert dense["xfeat-lighterglue"].query_gsd == 5.0
     assert dense["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
     assert "dense @ 5 m/px" in dense["xfeat-lighterglue"].label()

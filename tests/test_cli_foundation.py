@@ -111,8 +111,12 @@ def _make_results(path, truth: list[tuple[str, float, float]], tiles_csv: Path, 
 
 
 def _score(results, truth_csv, db, map_path):
-    p = subprocess.run([str(BIN / "python"), str(SCORER), str(results), str(truth_csv), str(db), str(map_path)],
-                       capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [str(BIN / "python"), str(SCORER), str(results), str(truth_csv), str(db), str(map_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert p.returncode == 0, p.stderr
     text = p.stdout
     got = {f"vpr_recall@{k}": float(v) for k, v in re.findall(r"@(\d+): ([\d.]+)", text.split("Georef")[0])}

@@ -10,8 +10,9 @@ import pytest
 
 
 def aeroloc(*args, cwd=None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "aeroloc.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=120, cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "aeroloc.cli", *map(str, args)], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
 
 
 def one_line_error(p: subprocess.CompletedProcess, command: str) -> str:

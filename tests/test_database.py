@@ -13,8 +13,8 @@ import shutil
 import numpy as np
 import pytest
 
-from aeroloc.retrieval.database import Database, build_global
 from aeroloc.core.errors import AerolocError
+from aeroloc.retrieval.database import Database, build_global
 from aeroloc.retrieval.store import DescriptorStore
 
 METHOD = "xfeat-vlad"
@@ -42,8 +42,24 @@ def test_second_build_is_a_cache_hit(naip_db, naip_map):
     before = {p: p.stat().st_mtime_ns for p in watched}
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        code = main(["build", str(naip_map), "--zoom", str(grid["zoom"]), "--overlap", str(grid["overlap"]),
-                     "--out", str(naip_db), "--method", METHOD, "--local", "xfeat-lighterglue", "--device", "cpu"])
+        code = main(
+            [
+                "build",
+                str(naip_map),
+                "--zoom",
+                str(grid["zoom"]),
+                "--overlap",
+                str(grid["overlap"]),
+                "--out",
+                str(naip_db),
+                "--method",
+                METHOD,
+                "--local",
+                "xfeat-lighterglue",
+                "--device",
+                "cpu",
+            ]
+        )
     assert code == 0
     text = out.getvalue()
     assert "(cached)" in text.splitlines()[0]  # the tiles
@@ -112,8 +128,8 @@ def _random_recall(n_tiles: int, n_true: int, top: int) -> float:
 
 
 def test_retrieval_finds_the_true_tile_on_real_cross_season_queries(naip_db, naip_dev):
-    from aeroloc.core.images import read_image
     from aeroloc.bench.metrics import tile_contains
+    from aeroloc.core.images import read_image
     from aeroloc.core.queries import load_queries
     from aeroloc.retrieval.retriever import Retriever
 
@@ -146,7 +162,8 @@ def test_queries_are_described_with_the_configuration_the_tiles_were_built_with(
     cls = method_class(METHOD)
     built = Database(naip_db).meta["global"][METHOD]["conf"]
     assert built["n_clusters"] == cls.default_conf["n_clusters"] and set(built) == set(cls.default_conf)
-    monkeypatch.setattr(cls, "default_conf", {**cls.default_conf, "n_clusters": built["n_clusters"] * 2,
-                                              "power_norm": 0.5})
+    monkeypatch.setattr(
+        cls, "default_conf", {**cls.default_conf, "n_clusters": built["n_clusters"] * 2, "power_norm": 0.5}
+    )
     model, _, _, _ = Database(naip_db).load_method(METHOD)
     assert model.conf["n_clusters"] == built["n_clusters"] and model.conf["power_norm"] == built["power_norm"]

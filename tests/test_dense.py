@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from aeroloc.core import geo
-from aeroloc.matching.dense import DEFAULTS, DenseRegion, orientation_features
-from aeroloc.localization.dense_stage import DenseMapLocator, check_query_gsd
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
-from aeroloc.maps.sources import open_map
 from aeroloc.core.queries import load_queries
+from aeroloc.localization.dense_stage import DenseMapLocator, check_query_gsd
+from aeroloc.maps.sources import open_map
+from aeroloc.matching.dense import DEFAULTS, DenseRegion, orientation_features
 
 # XFeat + LighterGlue found 4 and 5 verified matches on their true tiles (the lake of 2009 and the field of 2015
 # look nothing like 2020's); the dense search measured 4.2 m and 3.4 m, scores 0.45 and 0.39, ratios 2.3 and 1.9.
@@ -61,11 +61,11 @@ def test_a_crop_of_the_map_is_found_to_a_pixel_and_its_heading_to_a_few_degrees(
     whole, valid = naip.read(0, 0, naip.width, naip.height)
     region = DenseRegion(whole, valid)
     cx, cy, side = 512.0, 371.0, 170  # the crop's centre (pixel edges) and size
-    crop = whole[int(cy - side / 2):int(cy + side / 2), int(cx - side / 2):int(cx + side / 2)]
+    crop = whole[int(cy - side / 2) : int(cy + side / 2), int(cx - side / 2) : int(cx + side / 2)]
     if angle:  # the ground turned 10° clockwise, as in a NAIP query of heading_deg 10
-        big = whole[int(cy - side):int(cy + side), int(cx - side):int(cx + side)]
+        big = whole[int(cy - side) : int(cy + side), int(cx - side) : int(cx + side)]
         R = cv2.getRotationMatrix2D((side - 0.5, side - 0.5), -angle, 1.0)
-        crop = cv2.warpAffine(big, R, (2 * side, 2 * side))[side // 2: side // 2 + side, side // 2: side // 2 + side]
+        crop = cv2.warpAffine(big, R, (2 * side, 2 * side))[side // 2 : side // 2 + side, side // 2 : side // 2 + side]
     m = region.locate(crop)
     assert m is not None and m.trusted(region.conf)
     assert np.hypot(m.x - cx, m.y - cy) < (0.5 if not angle else 1.5), (m.x, m.y)
@@ -84,6 +84,7 @@ def test_a_crop_of_the_map_is_found_to_a_pixel_and_its_heading_to_a_few_degrees(
     # exact but for the heading's quantisation (steps of 3.75°), which moves the corners by radius x angle
     tol = 1.0 + side / np.sqrt(2) * abs(np.radians(m.angle - angle))
     assert np.abs(corners - edge).max() < tol, (corners, edge)
+
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", HOPELESS_FOR_LOCAL)
@@ -105,7 +106,7 @@ def test_no_trusted_answer_when_the_true_place_is_masked_turned_or_elsewhere(nai
     image = read_image(q.path)
     whole, valid = naip.read(0, 0, naip.width, naip.height)
     col, row = naip.latlon_to_pixel(q.lat, q.lon)
-    yy, xx = np.ogrid[:naip.height, :naip.width]
+    yy, xx = np.ogrid[: naip.height, : naip.width]
     masked = valid & ((yy - row) ** 2 + (xx - col) ** 2 >= (image.shape[0] / 2) ** 2)
     m = DenseRegion(whole, masked).locate(image)
     assert m is not None and not m.trusted(DEFAULTS), (m.score, m.ratio)
@@ -162,8 +163,12 @@ def test_a_large_map_is_searched_over_the_best_tiles_that_fit(naip):
 
     tiles = list(TileGrid(naip, 1.0, 0.5))
     a, b = tiles[5], tiles[6]  # neighbours along a row, half overlapping
-    box = (min(a.col, b.col), min(a.row, b.row), max(a.col + a.width, b.col + b.width),
-           max(a.row + a.height, b.row + b.height))
+    box = (
+        min(a.col, b.col),
+        min(a.row, b.row),
+        max(a.col + a.width, b.col + b.width),
+        max(a.row + a.height, b.row + b.height),
+    )
     one = DenseMapLocator(naip, NAIP_GSD, max_region_px=a.width * a.height)  # room for one tile only
     region, col0, row0 = one.region([a, b])
     assert (col0, row0) == (a.col, a.row) and region.shape == (a.height, a.width)
@@ -174,14 +179,15 @@ def test_a_large_map_is_searched_over_the_best_tiles_that_fit(naip):
 
 
 @pytest.mark.slow
-def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_features(naip_db, queries, data_dir,
-                                                                                     tmp_path):
+def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_features(
+    naip_db, queries, data_dir, tmp_path
+):
     """With the queries' resolution given, a query that local features miss is localized by the dense stage (its
     re-ranked tiles start with one that contains it), and a photo from elsewhere still ends "not localized" after
     the local-feature fallback."""
-    from aeroloc.retrieval.database import Database
-    from aeroloc.localization.localizer import Localizer
     from aeroloc.bench.metrics import tile_contains
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.retrieval.database import Database
 
     db = Database(naip_db)
     loc = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=NAIP_GSD)
@@ -195,7 +201,14 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     from aeroloc.localization.localizer import localize_queries
 
     out = tmp_path / "r.csv"
-    kw = dict(top_n=5, method="xfeat-vlad", rerank="xfeat-lighterglue", device="cpu", progress=False, north_up=True)
+    kw = {
+        "top_n": 5,
+        "method": "xfeat-vlad",
+        "rerank": "xfeat-lighterglue",
+        "device": "cpu",
+        "progress": False,
+        "north_up": True,
+    }
     assert localize_queries(db, [q], out, **kw)[0]["status"].startswith("not localized")
     shots = tmp_path / "matches"
     row = localize_queries(db, [q], out, query_gsd=NAIP_GSD, save_matches=shots, **kw)[0]
@@ -212,25 +225,54 @@ def test_the_cli_refuses_a_bad_query_resolution_before_any_work(naip_dev, tmp_pa
     import sys
 
     out = tmp_path / "r.csv"
-    p = subprocess.run([sys.executable, "-m", "aeroloc.cli", "localize", str(tmp_path), str(naip_dev),
-                        "--query-gsd", "-5", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "aeroloc.cli",
+            "localize",
+            str(tmp_path),
+            str(naip_dev),
+            "--query-gsd",
+            "-5",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert p.returncode == 2 and "Traceback" not in p.stderr + p.stdout
     assert "metres per pixel" in p.stderr and "-5" in p.stderr
     assert not out.exists()
 
 
 @pytest.mark.slow
-def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(naip_map, naip_dev, tmp_path,
-                                                                                monkeypatch):
+def test_a_benchmark_configuration_with_a_query_resolution_runs_the_dense_stage(
+    naip_map, naip_dev, tmp_path, monkeypatch
+):
     """aeroloc.bench.pipeline end to end on 6 NAIP queries (query_gsd set): every one placed by the dense stage within
     15 m, and the total time and peak memory are the localizing run's, also when its results file is reused."""
     import types
 
     from aeroloc.bench.pipeline import run_config
 
-    cfg = types.SimpleNamespace(map_path=str(naip_map), tile_m=None, queries_path=str(naip_dev), method="xfeat-vlad",
-                                reranker="xfeat-lighterglue", zoom=2.0, overlap=0.0, top_n=3, top_k=1,
-                                thresholds_m=(10, 25), device="cpu", max_queries=6, north_up=True, query_gsd=NAIP_GSD)
+    cfg = types.SimpleNamespace(
+        map_path=str(naip_map),
+        tile_m=None,
+        queries_path=str(naip_dev),
+        method="xfeat-vlad",
+        reranker="xfeat-lighterglue",
+        zoom=2.0,
+        overlap=0.0,
+        top_n=3,
+        top_k=1,
+        thresholds_m=(10, 25),
+        device="cpu",
+        max_queries=6,
+        north_up=True,
+        query_gsd=NAIP_GSD,
+    )
     first = run_config(cfg, tmp_path)
     assert all(r["status"].startswith("localized (dense") for r in first["rows"]), [r["status"] for r in first["rows"]]
     assert max(r["error_m"] for r in first["rows"]) < 15.0

@@ -27,12 +27,28 @@ from PIL import Image
 
 from _mapfolders import latlon_to_merc, xyz_bounds
 from aeroloc import cli
-from aeroloc.maps.download import (DownloadReport, InvalidImage, RetryPolicy, TokenBucket, decode_image, download_map,
-                              parse_retry_after, remove_partial_files)
 from aeroloc.core.errors import AerolocError
+from aeroloc.maps.download import (
+    DownloadReport,
+    InvalidImage,
+    RetryPolicy,
+    TokenBucket,
+    decode_image,
+    download_map,
+    parse_retry_after,
+    remove_partial_files,
+)
+from aeroloc.maps.providers import (
+    GoogleStaticProvider,
+    XYZProvider,
+    bbox_around,
+    google_grid,
+    read_key,
+    redact,
+    resolve_provider,
+    xyz_grid,
+)
 from aeroloc.maps.sources import open_map
-from aeroloc.maps.providers import (GoogleStaticProvider, XYZProvider, bbox_around, google_grid, read_key, redact,
-                               resolve_provider, xyz_grid)
 
 pytest_httpserver = pytest.importorskip("pytest_httpserver")
 from werkzeug import Response  # noqa: E402  (installed with pytest-httpserver)
@@ -73,8 +89,15 @@ def warp_naip(naip_map, zoom: int, left_px: int, top_px: int, width: int, height
     dst_transform = Affine(res, 0, -HALF + left_px * res, 0, -res, HALF - top_px * res)
     out = np.zeros((3, height, width), np.uint8)
     with rasterio.open(naip_map) as ds:
-        reproject(ds.read([1, 2, 3]), out, src_transform=ds.transform, src_crs=ds.crs, dst_transform=dst_transform,
-                  dst_crs="EPSG:3857", resampling=Resampling.bilinear)
+        reproject(
+            ds.read([1, 2, 3]),
+            out,
+            src_transform=ds.transform,
+            src_crs=ds.crs,
+            dst_transform=dst_transform,
+            dst_crs="EPSG:3857",
+            resampling=Resampling.bilinear,
+        )
     return np.moveaxis(out, 0, -1).copy()
 
 
@@ -101,11 +124,14 @@ def naip_tiles(naip_map) -> TileSet:
     bbox = naip_latlon_bounds(naip_map)
     south, west, north, east = bbox
     # tile range by hand: x = floor(global px / 256) of the west/east edges, y of the north/south edges
-    (l, t), (r, b) = global_px(north, west, Z), global_px(south, east, Z)
-    x0, y0, x1, y1 = int(l // 256), int(t // 256), int(r // 256), int(b // 256)
+    (px_l, px_t), (px_r, px_b) = global_px(north, west, Z), global_px(south, east, Z)
+    x0, y0, x1, y1 = int(px_l // 256), int(px_t // 256), int(px_r // 256), int(px_b // 256)
     mosaic = warp_naip(naip_map, Z, x0 * 256, y0 * 256, (x1 - x0 + 1) * 256, (y1 - y0 + 1) * 256)
-    tiles = {(x, y): png(mosaic[(y - y0) * 256:(y - y0 + 1) * 256, (x - x0) * 256:(x - x0 + 1) * 256])
-             for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)}
+    tiles = {
+        (x, y): png(mosaic[(y - y0) * 256 : (y - y0 + 1) * 256, (x - x0) * 256 : (x - x0 + 1) * 256])
+        for y in range(y0, y1 + 1)
+        for x in range(x0, x1 + 1)
+    }
     return TileSet(Z, x0, x1, y0, y1, bbox, mosaic, tiles)
 
 
@@ -148,13 +174,21 @@ class FaultyTileServer:
         if fault == "503":
             return Response("busy", 503, headers={"Retry-After": "2"})
         if fault == "html":  # a captive portal / error page served with 200
-            return Response("<!DOCTYPE html><html><body>Service temporarily unavailable</body></html>", 200,
-                            content_type="text/html")
+            return Response(
+                "<!DOCTYPE html><html><body>Service temporarily unavailable</body></html>",
+                200,
+                content_type="text/html",
+            )
         if fault == "trunc":  # a complete HTTP response whose image is cut short
             return Response(body[: len(body) // 2], 200, content_type="image/png")
         if fault == "cut":  # the connection drops mid-body (Content-Length promises more)
-            return Response(iter([body[: len(body) // 3]]), 200, content_type="image/png",
-                            headers={"Content-Length": str(len(body))}, direct_passthrough=True)
+            return Response(
+                iter([body[: len(body) // 3]]),
+                200,
+                content_type="image/png",
+                headers={"Content-Length": str(len(body))},
+                direct_passthrough=True,
+            )
         if fault == "slow":  # longer than the client's read timeout
             time.sleep(SLOW_S)
         return Response(body, 200, content_type="image/png")
@@ -194,14 +228,29 @@ class Sleeps:
 
 
 def fast_policy(sleeps=None, attempts=6, timeout=TIMEOUT_S) -> RetryPolicy:
-    return RetryPolicy(attempts=attempts, backoff_s=0.01, connect_timeout_s=2, read_timeout_s=timeout,
-                       total_timeout_s=5, sleep=sleeps or Sleeps())
+    return RetryPolicy(
+        attempts=attempts,
+        backoff_s=0.01,
+        connect_timeout_s=2,
+        read_timeout_s=timeout,
+        total_timeout_s=5,
+        sleep=sleeps or Sleeps(),
+    )
 
 
 def fetch(out, ts: TileSet, server, policy=None, key=None, template=None, workers=4):
     provider = resolve_provider(template or server.base + "/{z}/{x}/{y}.png")  # as the CLI does
-    return download_map(out, ts.bbox, ts.zoom, provider, key=key, workers=workers, rate=1000,
-                        policy=policy or fast_policy(), progress=False)
+    return download_map(
+        out,
+        ts.bbox,
+        ts.zoom,
+        provider,
+        key=key,
+        workers=workers,
+        rate=1000,
+        policy=policy or fast_policy(),
+        progress=False,
+    )
 
 
 def tile_files(folder: Path) -> dict:
@@ -248,10 +297,10 @@ def test_google_grid_centres_on_pixels_and_shares_edges():
     bbox = (47.008, -99.17, 47.033, -99.14)
     g = google_grid(bbox, 15, size=640, scale=2, crop_px=50)
     assert g.render_zoom == 16 and (g.tile_w, g.tile_h) == (1280, 1230)
-    (l, t), (r, b) = global_px(bbox[2], bbox[1], 16), global_px(bbox[0], bbox[3], 16)
-    assert (g.left, g.top) == (math.floor(l), math.floor(t))  # grid starts on the box's NW pixel
-    assert g.left + g.n_cols * 1280 >= r and g.top + g.n_rows * 1230 >= b  # covers the box …
-    assert g.left + (g.n_cols - 1) * 1280 < r and g.top + (g.n_rows - 1) * 1230 < b  # … with no spare row/column
+    (px_l, px_t), (px_r, px_b) = global_px(bbox[2], bbox[1], 16), global_px(bbox[0], bbox[3], 16)
+    assert (g.left, g.top) == (math.floor(px_l), math.floor(px_t))  # grid starts on the box's NW pixel
+    assert g.left + g.n_cols * 1280 >= px_r and g.top + g.n_rows * 1230 >= px_b  # covers the box …
+    assert g.left + (g.n_cols - 1) * 1280 < px_r and g.top + (g.n_rows - 1) * 1230 < px_b  # … with no spare row/column
     cells = {(c.row, c.col): c for c in g.cells()}
     for (row, col), c in cells.items():
         cx, cy = global_px(c.centre_lat, c.centre_lon, 16)  # the request centre is the image's middle pixel edge
@@ -267,8 +316,9 @@ def test_google_grid_centres_on_pixels_and_shares_edges():
 
 
 def test_providers_fill_subdomains_quadkeys_retina_and_keys():
-    p = XYZProvider("t", "https://{s}.tiles.example/{z}/{x}/{y}{r}.png?q={q}&k={key}", subdomains=("a", "b"),
-                    retina=True)
+    p = XYZProvider(
+        "t", "https://{s}.tiles.example/{z}/{x}/{y}{r}.png?q={q}&k={key}", subdomains=("a", "b"), retina=True
+    )
     # Bing's documented example: tile x=3, y=5 at level 3 has quadkey "213"
     url = p.url(3, 3, 5, key="k y/")
     assert url == "https://a.tiles.example/3/3/5@2x.png?q=213&k=k%20y%2F" and p.tile_size == 512
@@ -277,7 +327,7 @@ def test_providers_fill_subdomains_quadkeys_retina_and_keys():
         p.url(3, 3, 5)
     esri = resolve_provider("Esri.WorldImagery")
     assert esri.template.endswith("/World_Imagery/MapServer/tile/{z}/{y}/{x}") and "Esri" in esri.attribution
-    assert esri.url(15, 7355, 11520) .endswith("/tile/15/11520/7355") and not esri.needs_key
+    assert esri.url(15, 7355, 11520).endswith("/tile/15/11520/7355") and not esri.needs_key
     tf = resolve_provider("Thunderforest.Landscape")  # a catalogue entry with a token placeholder
     assert tf.needs_key and "{key}" in tf.template and "insert" not in tf.template
     assert isinstance(resolve_provider("google"), GoogleStaticProvider)
@@ -287,8 +337,12 @@ def test_providers_fill_subdomains_quadkeys_retina_and_keys():
 
 
 def test_bbox_and_zoom_errors_are_clear():
-    for bbox, match in [((47, -99, 46, -98), "SOUTH < NORTH"), ((-99, 47, -98, 48), "SOUTH < NORTH"),
-                        ((47, 179, 48, -179), "antimeridian"), (("a", 1, 2, 3), "four numbers")]:
+    for bbox, match in [
+        ((47, -99, 46, -98), "SOUTH < NORTH"),
+        ((-99, 47, -98, 48), "SOUTH < NORTH"),
+        ((47, 179, 48, -179), "antimeridian"),
+        (("a", 1, 2, 3), "four numbers"),
+    ]:
         with pytest.raises(AerolocError, match=match):
             xyz_grid(bbox, 10)
     with pytest.raises(AerolocError, match="zoom"):
@@ -316,8 +370,12 @@ def test_decode_image_rejects_html_truncated_and_wrong_size(naip_tiles):
     body = next(iter(naip_tiles.tiles.values()))
     im, ext = decode_image(body, (256, 256))
     assert ext == ".png" and im.size == (256, 256)
-    for bad, match in [(b"<!DOCTYPE html><html></html>", "HTML"), (body[: len(body) // 2], "undecodable"),
-                       (b"", "empty"), (b"\x89PNG\r\n\x1a\n garbage", "undecodable")]:
+    for bad, match in [
+        (b"<!DOCTYPE html><html></html>", "HTML"),
+        (body[: len(body) // 2], "undecodable"),
+        (b"", "empty"),
+        (b"\x89PNG\r\n\x1a\n garbage", "undecodable"),
+    ]:
         with pytest.raises(InvalidImage, match=match) as e:
             decode_image(bad, (256, 256))
         assert e.value.retry
@@ -404,8 +462,18 @@ def test_fault_free_download_is_the_server_mosaic(tmp_path, naip_tiles, tile_ser
 def test_every_fault_costs_one_retry_and_the_result_is_byte_identical(tmp_path, naip_tiles, tile_server):
     ts = naip_tiles
     keys = sorted(ts.tiles)
-    plan = [["429"], ["500", "500", "500"], ["503", "502"], ["html"], ["trunc"], ["cut"], ["slow"],
-            ["429", "html", "cut", "503", "trunc"], ["slow", "500"], ["cut", "cut"]]
+    plan = [
+        ["429"],
+        ["500", "500", "500"],
+        ["503", "502"],
+        ["html"],
+        ["trunc"],
+        ["cut"],
+        ["slow"],
+        ["429", "html", "cut", "503", "trunc"],
+        ["slow", "500"],
+        ["cut", "cut"],
+    ]
     tile_server.faults = {keys[3 * i]: f for i, f in enumerate(plan)}
     sleeps = Sleeps()
     report, manifest = fetch(tmp_path / "faulty", ts, tile_server, policy=fast_policy(sleeps))
@@ -421,15 +489,31 @@ def test_every_fault_costs_one_retry_and_the_result_is_byte_identical(tmp_path, 
     assert not partial_files(tmp_path / "faulty")
 
 
-def test_lasting_failures_are_reported_and_a_rerun_fetches_only_them(tmp_path, naip_tiles, tile_server, capsys,
-                                                                      monkeypatch):
+def test_lasting_failures_are_reported_and_a_rerun_fetches_only_them(
+    tmp_path, naip_tiles, tile_server, capsys, monkeypatch
+):
     ts = naip_tiles
     keys = sorted(ts.tiles)
     tile_server.faults = {keys[0]: ["500*"], keys[1]: ["404"], keys[2]: ["html*"]}
     out = tmp_path / "map"
-    args = ["download", "--bbox", *map(str, ts.bbox), "--zoom", str(Z), "--provider",
-            tile_server.base + "/{z}/{x}/{y}.png", "--out", str(out), "--retries", "3", "--rate", "1000",
-            "--no-progress", "--timeout", "2"]
+    args = [
+        "download",
+        "--bbox",
+        *map(str, ts.bbox),
+        "--zoom",
+        str(Z),
+        "--provider",
+        tile_server.base + "/{z}/{x}/{y}.png",
+        "--out",
+        str(out),
+        "--retries",
+        "3",
+        "--rate",
+        "1000",
+        "--no-progress",
+        "--timeout",
+        "2",
+    ]
     import aeroloc.maps.download as dl
 
     monkeypatch.setattr(dl.RetryPolicy, "delay", lambda self, attempt, retry_after=None: 0.0)  # no waiting
@@ -444,8 +528,9 @@ def test_lasting_failures_are_reported_and_a_rerun_fetches_only_them(tmp_path, n
 
     tile_server.faults, before = {}, dict(tile_server.hits)
     assert cli.main(args) == 0
-    assert {k: tile_server.hits[k] - before.get(k, 0) for k in keys if tile_server.hits[k] != before.get(k, 0)} \
-        == {k: 1 for k in keys[:3]}  # only the missing tiles were fetched
+    assert {
+        k: tile_server.hits[k] - before.get(k, 0) for k in keys if tile_server.hits[k] != before.get(k, 0)
+    } == dict.fromkeys(keys[:3], 1)  # only the missing tiles were fetched
     assert tile_files(out) == expected_files(ts)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["complete"] and manifest["tiles_missing"] == []
@@ -505,9 +590,25 @@ def test_killed_process_resumes_to_the_same_map(tmp_path, naip_tiles, tile_serve
     ts = naip_tiles
     out = tmp_path / "map"
     tile_server.delay_s = 0.05
-    args = [sys.executable, "-m", "aeroloc.cli", "download", "--bbox", *map(str, ts.bbox), "--zoom", str(Z),
-            "--provider", tile_server.base + "/{z}/{x}/{y}.png", "--out", str(out), "--workers", "2",
-            "--rate", "1000", "--no-progress"]
+    args = [
+        sys.executable,
+        "-m",
+        "aeroloc.cli",
+        "download",
+        "--bbox",
+        *map(str, ts.bbox),
+        "--zoom",
+        str(Z),
+        "--provider",
+        tile_server.base + "/{z}/{x}/{y}.png",
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+        "--rate",
+        "1000",
+        "--no-progress",
+    ]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 30
@@ -525,8 +626,7 @@ def test_killed_process_resumes_to_the_same_map(tmp_path, naip_tiles, tile_serve
     assert tile_files(out) == expected_files(ts) and not partial_files(out)
 
 
-def test_keys_never_reach_messages_logs_or_manifest(tmp_path, naip_tiles, tile_server, monkeypatch, capsys,
-                                                    caplog):
+def test_keys_never_reach_messages_logs_or_manifest(tmp_path, naip_tiles, tile_server, monkeypatch, capsys, caplog):
     import logging
 
     import aeroloc.maps.download as dl
@@ -534,14 +634,34 @@ def test_keys_never_reach_messages_logs_or_manifest(tmp_path, naip_tiles, tile_s
     ts = naip_tiles
     keys = sorted(ts.tiles)
     tile_server.key = SECRET
-    tile_server.faults = {keys[0]: ["500*"], keys[1]: ["cut*"], keys[2]: ["slow*"], keys[3]: ["404"],
-                          keys[4]: ["html*"]}
+    tile_server.faults = {
+        keys[0]: ["500*"],
+        keys[1]: ["cut*"],
+        keys[2]: ["slow*"],
+        keys[3]: ["404"],
+        keys[4]: ["html*"],
+    }
     monkeypatch.setattr(dl.RetryPolicy, "delay", lambda self, attempt, retry_after=None: 0.0)
     monkeypatch.setenv("AEROLOC_TILE_KEY", SECRET)
     template = tile_server.base + "/{z}/{x}/{y}.png?token={key}"
     out = tmp_path / "map"
-    args = ["download", "--bbox", *map(str, ts.bbox), "--zoom", str(Z), "--provider", template, "--out", str(out),
-            "--retries", "2", "--timeout", str(TIMEOUT_S), "--rate", "1000"]
+    args = [
+        "download",
+        "--bbox",
+        *map(str, ts.bbox),
+        "--zoom",
+        str(Z),
+        "--provider",
+        template,
+        "--out",
+        str(out),
+        "--retries",
+        "2",
+        "--timeout",
+        str(TIMEOUT_S),
+        "--rate",
+        "1000",
+    ]
     with caplog.at_level(logging.DEBUG):
         assert cli.main(args) == 1
         captured = capsys.readouterr()
@@ -553,7 +673,7 @@ def test_keys_never_reach_messages_logs_or_manifest(tmp_path, naip_tiles, tile_s
     # a wrong key: the server refuses (403) -> one-line error, exit 2, key not shown
     monkeypatch.setenv("AEROLOC_TILE_KEY", "Wr0ngKey-xyz")
     tile_server.faults = {}
-    assert cli.main(args[:-2] + ["--rate", "1000", "--no-progress"]) == 2
+    assert cli.main([*args[:-2], "--rate", "1000", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "HTTP 403" in err and "access refused" in err and "Wr0ngKey" not in err
     assert len(err.strip().splitlines()) == 1
@@ -567,8 +687,17 @@ def test_unreachable_server_stops_early_and_says_so(tmp_path, naip_tiles):
         port = sock.getsockname()[1]
     provider = resolve_provider(f"http://127.0.0.1:{port}/{{z}}/{{x}}/{{y}}.png")
     # one worker: the stop point does not depend on how the two cores are shared
-    report, manifest = download_map(tmp_path / "m", naip_tiles.bbox, Z, provider, workers=1, rate=1000,
-                                    policy=fast_policy(attempts=2), progress=False, max_consecutive_failures=5)
+    report, manifest = download_map(
+        tmp_path / "m",
+        naip_tiles.bbox,
+        Z,
+        provider,
+        workers=1,
+        rate=1000,
+        policy=fast_policy(attempts=2),
+        progress=False,
+        max_consecutive_failures=5,
+    )
     assert "in a row failed" in report.aborted and "connection error" in report.aborted
     assert len(report.failed) == 35 and len(manifest["tiles_missing"]) == 35 and report.downloaded == 0
     assert sum(r == "not attempted (run stopped)" for r in report.failed.values()) >= 35 - 5 - 2
@@ -588,8 +717,22 @@ def test_download_around_a_flight_covers_every_position(tmp_path, naip_tiles, ti
     from aeroloc.core.queries import load_queries
 
     out = tmp_path / "map"
-    args = ["download", "--around", str(naip_dev), "--margin-m", "100", "--zoom", "13", "--provider",
-            tile_server.base + "/{z}/{x}/{y}.png", "--out", str(out), "--no-progress", "--rate", "1000"]
+    args = [
+        "download",
+        "--around",
+        str(naip_dev),
+        "--margin-m",
+        "100",
+        "--zoom",
+        "13",
+        "--provider",
+        tile_server.base + "/{z}/{x}/{y}.png",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--rate",
+        "1000",
+    ]
     tile_server.tiles = {}  # zoom 13 is not served: every tile is a 404, but the plan is what we check here
     assert cli.main(args) == 1
     manifest = json.loads((out / "manifest.json").read_text())
@@ -636,25 +779,36 @@ class StaticMapsServer:
             return Response("centre is not on the pixel grid", 400)
         c0, r0 = int(round(cx)) - 640 - self.left, int(round(cy)) - 640 - self.top
         img = np.zeros((1280, 1280, 3), np.uint8)
-        rs, cs = slice(max(r0, 0), min(r0 + 1280, self.world.shape[0])), slice(max(c0, 0), min(c0 + 1280, self.world.shape[1]))
-        img[rs.start - r0:rs.stop - r0, cs.start - c0:cs.stop - c0] = self.world[rs, cs]
+        rs, cs = (
+            slice(max(r0, 0), min(r0 + 1280, self.world.shape[0])),
+            slice(max(c0, 0), min(c0 + 1280, self.world.shape[1])),
+        )
+        img[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0] = self.world[rs, cs]
         img[-50:] = MAGENTA  # the Google logo / copyright strip
         return Response(png(img), 200, content_type="image/png")
 
 
 def test_google_static_download_mosaics_exactly(tmp_path, naip_map, http_server):
     south, west, north, east = GOOGLE_BBOX
-    (l, t), (r, b) = global_px(north, west, RENDER_ZOOM), global_px(south, east, RENDER_ZOOM)
-    left, top = int(l) - 2, int(t) - 2
-    world = warp_naip(naip_map, RENDER_ZOOM, left, top, int(r) - left + 1300, int(b) - top + 1300)
+    (px_l, px_t), (px_r, px_b) = global_px(north, west, RENDER_ZOOM), global_px(south, east, RENDER_ZOOM)
+    left, top = int(px_l) - 2, int(px_t) - 2
+    world = warp_naip(naip_map, RENDER_ZOOM, left, top, int(px_r) - left + 1300, int(px_b) - top + 1300)
     server = StaticMapsServer(world, left, top, SECRET, faults=["429", "html"])
     http_server.clear()
     http_server.expect_request("/staticmap").respond_with_handler(server)
     provider = GoogleStaticProvider(base_url=http_server.url_for("/staticmap"))
     sleeps = Sleeps()
     out = tmp_path / "google"
-    report, manifest = download_map(out, GOOGLE_BBOX, GOOGLE_ZOOM, provider, key=SECRET, rate=1000,
-                                    policy=fast_policy(sleeps, timeout=10), progress=False)  # renders take time
+    report, manifest = download_map(
+        out,
+        GOOGLE_BBOX,
+        GOOGLE_ZOOM,
+        provider,
+        key=SECRET,
+        rate=1000,
+        policy=fast_policy(sleeps, timeout=10),
+        progress=False,
+    )  # renders take time
     assert report.complete and report.retries == 2 and max(sleeps.calls) >= 5
     assert manifest["layout"] == "metadata" and manifest["tile_size"] == [1280, 1230]
     g = manifest["grid"]
@@ -664,21 +818,22 @@ def test_google_static_download_mosaics_exactly(tmp_path, naip_map, http_server)
     names = [ln.split()[0] for ln in rows[1:]]
     assert names == ["tile_0000_0000.png", "tile_0000_0001.png", "tile_0001_0000.png", "tile_0001_0001.png"]
     tl_lat, tl_lon = map(float, rows[1].split()[1:3])
-    assert global_px(tl_lat, tl_lon, RENDER_ZOOM) == (pytest.approx(g["left_px"], abs=1e-4),
-                                                        pytest.approx(g["top_px"], abs=1e-4))
+    assert global_px(tl_lat, tl_lon, RENDER_ZOOM) == (
+        pytest.approx(g["left_px"], abs=1e-4),
+        pytest.approx(g["top_px"], abs=1e-4),
+    )
     m = open_map(out)  # the lead's reader: rows, columns and shared edges check out
-    rgb, valid = m.read(0, 0, m.width, m.height)
+    rgb, _valid = m.read(0, 0, m.width, m.height)
     assert (m.width, m.height) == (2 * 1280, 2 * 1230)
     r0, c0 = g["top_px"] - top, g["left_px"] - left
-    assert np.array_equal(rgb, world[r0:r0 + m.height, c0:c0 + m.width])  # pixel-exact, logo strip gone
+    assert np.array_equal(rgb, world[r0 : r0 + m.height, c0 : c0 + m.width])  # pixel-exact, logo strip gone
     assert not np.all(rgb == MAGENTA, axis=-1).any()
     assert m.resolution_m == pytest.approx(res_at(RENDER_ZOOM) * math.cos(math.radians(47.02)), rel=2e-3)
     text = (out / "manifest.json").read_text() + "".join(rows)
     assert SECRET not in text and not partial_files(out)
     # resume: nothing to fetch
     n = server.requests
-    report, _ = download_map(out, GOOGLE_BBOX, GOOGLE_ZOOM, provider, key=SECRET, policy=fast_policy(),
-                             progress=False)
+    report, _ = download_map(out, GOOGLE_BBOX, GOOGLE_ZOOM, provider, key=SECRET, policy=fast_policy(), progress=False)
     assert report.skipped == 4 and server.requests == n
 
 
@@ -697,7 +852,8 @@ def test_remove_partial_files_only_touches_temp_files(tmp_path):
 
 
 def test_report_summary_lists_missing_tiles():
-    r = DownloadReport(expected=3, downloaded=1, skipped=0, failed={"15/1/2": "HTTP 404", "15/1/3": "timeout"},
-                       seconds=2.0)
+    r = DownloadReport(
+        expected=3, downloaded=1, skipped=0, failed={"15/1/2": "HTTP 404", "15/1/3": "timeout"}, seconds=2.0
+    )
     s = r.summary()
     assert "2 missing of 3" in s and "15/1/2" in s and "HTTP 404 (1)" in s and not r.complete

@@ -32,13 +32,16 @@ def test_z0_tile_is_the_whole_mercator_world():
     assert (west, east) == (pytest.approx(-180.0, abs=1e-12), pytest.approx(180.0, abs=1e-12))
 
 
-@pytest.mark.parametrize("x,y,expected", [
-    # z=1 splits the world at the equator and the Greenwich meridian.
-    (0, 0, (85.0511287798066, -180.0, 0.0, 0.0)),
-    (1, 0, (85.0511287798066, 0.0, 0.0, 180.0)),
-    (0, 1, (0.0, -180.0, -85.0511287798066, 0.0)),
-    (1, 1, (0.0, 0.0, -85.0511287798066, 180.0)),
-])
+@pytest.mark.parametrize(
+    "x,y,expected",
+    [
+        # z=1 splits the world at the equator and the Greenwich meridian.
+        (0, 0, (85.0511287798066, -180.0, 0.0, 0.0)),
+        (1, 0, (85.0511287798066, 0.0, 0.0, 180.0)),
+        (0, 1, (0.0, -180.0, -85.0511287798066, 0.0)),
+        (1, 1, (0.0, 0.0, -85.0511287798066, 180.0)),
+    ],
+)
 def test_z1_tiles_split_at_equator_and_greenwich(x, y, expected):
     assert geo.xyz_tile_bounds(1, x, y) == pytest.approx(expected, abs=1e-12)
 
@@ -102,13 +105,19 @@ def test_mercator_transform_puts_tile_corners_on_xyz_bounds():
     np.testing.assert_allclose([lat[0], lon[0], lat[1], lon[1]], [north, west, south, east], atol=1e-11)
 
 
-@pytest.mark.parametrize("x,y,z,key", [
-    (3, 5, 3, "213"),  # the example in Microsoft's "Bing Maps Tile System" article
-    (0, 0, 1, "0"), (1, 0, 1, "1"), (0, 1, 1, "2"), (1, 1, 1, "3"),
-    (0, 0, 0, ""),
-    (1023, 1023, 10, "3" * 10),
-    (229, 360, 10, "0213302101"),  # 229 = 0b0011100101, 360 = 0b0101101000 -> digit = xbit + 2 ybit
-])
+@pytest.mark.parametrize(
+    "x,y,z,key",
+    [
+        (3, 5, 3, "213"),  # the example in Microsoft's "Bing Maps Tile System" article
+        (0, 0, 1, "0"),
+        (1, 0, 1, "1"),
+        (0, 1, 1, "2"),
+        (1, 1, 1, "3"),
+        (0, 0, 0, ""),
+        (1023, 1023, 10, "3" * 10),
+        (229, 360, 10, "0213302101"),  # 229 = 0b0011100101, 360 = 0b0101101000 -> digit = xbit + 2 ybit
+    ],
+)
 def test_quadkey(x, y, z, key):
     assert geo.quadkey(x, y, z) == key
 
@@ -117,18 +126,24 @@ def test_quadkey(x, y, z, key):
 def _tm_coeffs(f):
     n = f / (2 - f)
     A = 1 / (1 + n) * (1 + n**2 / 4 + n**4 / 64)
-    alpha = [n / 2 - 2 * n**2 / 3 + 5 * n**3 / 16 + 41 * n**4 / 180,
-             13 * n**2 / 48 - 3 * n**3 / 5 + 557 * n**4 / 1440,
-             61 * n**3 / 240 - 103 * n**4 / 140,
-             49561 * n**4 / 161280]
-    beta = [n / 2 - 2 * n**2 / 3 + 37 * n**3 / 96 - n**4 / 360,
-            n**2 / 48 + n**3 / 15 - 437 * n**4 / 1440,
-            17 * n**3 / 480 - 37 * n**4 / 840,
-            4397 * n**4 / 161280]
-    delta = [2 * n - 2 * n**2 / 3 - 2 * n**3 + 116 * n**4 / 45,
-             7 * n**2 / 3 - 8 * n**3 / 5 - 227 * n**4 / 45,
-             56 * n**3 / 15 - 136 * n**4 / 35,
-             4279 * n**4 / 630]
+    alpha = [
+        n / 2 - 2 * n**2 / 3 + 5 * n**3 / 16 + 41 * n**4 / 180,
+        13 * n**2 / 48 - 3 * n**3 / 5 + 557 * n**4 / 1440,
+        61 * n**3 / 240 - 103 * n**4 / 140,
+        49561 * n**4 / 161280,
+    ]
+    beta = [
+        n / 2 - 2 * n**2 / 3 + 37 * n**3 / 96 - n**4 / 360,
+        n**2 / 48 + n**3 / 15 - 437 * n**4 / 1440,
+        17 * n**3 / 480 - 37 * n**4 / 840,
+        4397 * n**4 / 161280,
+    ]
+    delta = [
+        2 * n - 2 * n**2 / 3 - 2 * n**3 + 116 * n**4 / 45,
+        7 * n**2 / 3 - 8 * n**3 / 5 - 227 * n**4 / 45,
+        56 * n**3 / 15 - 136 * n**4 / 35,
+        4279 * n**4 / 630,
+    ]
     return n, A, alpha, beta, delta
 
 
@@ -145,7 +160,7 @@ def utm_forward(lat, lon, zone, a=WGS84_A, f=WGS84_F):
 
 
 def utm_inverse(e, nn, zone, a=GRS80_A, f=GRS80_F):
-    n, A, _, beta, delta = _tm_coeffs(f)
+    _n, A, _, beta, delta = _tm_coeffs(f)
     k0, lon0 = 0.9996, math.radians(-183 + 6 * zone)
     xi, eta = nn / (k0 * a * A), (e - 500000) / (k0 * a * A)
     xi_ = xi - sum(b * math.sin(2 * j * xi) * math.cosh(2 * j * eta) for j, b in enumerate(beta, 1))

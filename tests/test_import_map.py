@@ -14,8 +14,8 @@ from PIL import Image
 from aeroloc import cli
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.geo import crs_to_latlon, geodesic_distance
-from aeroloc.maps.sources import open_map
 from aeroloc.maps.orthophoto import import_orthophoto
+from aeroloc.maps.sources import open_map
 
 
 def test_import_keeps_pixels_and_georeference(tmp_path, toledo_map):
@@ -61,8 +61,11 @@ def test_cli_import_and_bad_inputs(tmp_path, naip_map, capsys):
     text.write_text("not a raster")
     no_crs = tmp_path / "plain.png"
     Image.fromarray(np.full((32, 32, 3), 120, np.uint8)).save(no_crs)
-    for bad, match in [(tmp_path / "missing.tif", "not found"), (text, "not a readable raster"),
-                       (no_crs, "no coordinate reference system")]:
+    for bad, match in [
+        (tmp_path / "missing.tif", "not found"),
+        (text, "not a readable raster"),
+        (no_crs, "no coordinate reference system"),
+    ]:
         with pytest.raises(AerolocError, match=match):
             import_orthophoto(bad, tmp_path / "out")
         assert cli.main(["import", str(bad), "--out", str(tmp_path / "out")]) == 2

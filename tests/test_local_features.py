@@ -49,14 +49,13 @@ def _query(naip_dev, name):
 def _true_pixel(naip_map, row) -> tuple[float, float]:
     """Query centre in map pixel-edge coordinates (col, row)."""
     with rasterio.open(naip_map) as ds:
-        x, y = Transformer.from_crs("EPSG:4326", ds.crs, always_xy=True).transform(float(row["lon"]),
-                                                                                    float(row["lat"]))
+        x, y = Transformer.from_crs("EPSG:4326", ds.crs, always_xy=True).transform(float(row["lon"]), float(row["lat"]))
         return (~ds.transform) @ (x, y)
 
 
 def _crop(naip_map, col0, row0, size=CROP) -> np.ndarray:
     with rasterio.open(naip_map) as ds:
-        assert 0 <= col0 and col0 + size <= ds.width and 0 <= row0 and row0 + size <= ds.height
+        assert col0 >= 0 and col0 + size <= ds.width and row0 >= 0 and row0 + size <= ds.height
         return np.ascontiguousarray(ds.read(window=Window(col0, row0, size, size)).transpose(1, 2, 0))
 
 
@@ -108,7 +107,7 @@ def naip_crop(naip_map):
 
 
 FAST = ["xfeat", "sift"]
-ALL = FAST + [pytest.param("aliked", marks=pytest.mark.slow), pytest.param("disk", marks=pytest.mark.slow)]
+ALL = [*FAST, pytest.param("aliked", marks=pytest.mark.slow), pytest.param("disk", marks=pytest.mark.slow)]
 
 
 @pytest.mark.parametrize("kind", ALL)
@@ -172,8 +171,16 @@ def test_bad_input_is_a_clear_error():
 
 
 def test_registry_names_and_unknown_name():
-    assert {"xfeat-lighterglue", "xfeat-mnn", "aliked-lightglue", "disk-lightglue", "sift", "superpoint-lightglue",
-            "superpoint-superglue", "selavpr"} <= set(RERANKERS)
+    assert {
+        "xfeat-lighterglue",
+        "xfeat-mnn",
+        "aliked-lightglue",
+        "disk-lightglue",
+        "sift",
+        "superpoint-lightglue",
+        "superpoint-superglue",
+        "selavpr",
+    } <= set(RERANKERS)
     with pytest.raises(AerolocError, match="xfeat-lighterglue") as e:
         build_reranker("nope", "cpu")
     assert "unknown re-ranker 'nope'" in str(e.value)
@@ -187,9 +194,16 @@ def test_superpoint_keys_match_magicleap_checkpoint():
 
     sd = SuperPointNet().state_dict()
     assert len(sd) == 24  # 12 convolutions x (weight, bias), as in superpoint_v1.pth
-    expected = {"conv1a.weight": (64, 1, 3, 3), "conv2b.weight": (64, 64, 3, 3), "conv3a.weight": (128, 64, 3, 3),
-                "conv4b.bias": (128,), "convPa.weight": (256, 128, 3, 3), "convPb.weight": (65, 256, 1, 1),
-                "convDa.weight": (256, 128, 3, 3), "convDb.weight": (256, 256, 1, 1)}
+    expected = {
+        "conv1a.weight": (64, 1, 3, 3),
+        "conv2b.weight": (64, 64, 3, 3),
+        "conv3a.weight": (128, 64, 3, 3),
+        "conv4b.bias": (128,),
+        "convPa.weight": (256, 128, 3, 3),
+        "convPb.weight": (65, 256, 1, 1),
+        "convDa.weight": (256, 128, 3, 3),
+        "convDb.weight": (256, 256, 1, 1),
+    }
     for k, shape in expected.items():
         assert tuple(sd[k].shape) == shape, k
 
@@ -201,11 +215,18 @@ def test_superglue_keys_match_magicleap_checkpoint():
     # keypoint encoder 5 convs + 4 BN (4 tensors each) = 26; 18 GNN layers x (4 attn convs x 2 + 2 convs x 2 +
     # 1 BN x 4) = 18 x 16 = 288; final_proj 2; bin_score 1
     assert len(sd) == 26 + 288 + 3
-    expected = {"kenc.encoder.0.weight": (32, 3, 1), "kenc.encoder.10.running_var": (256,),
-                "kenc.encoder.12.weight": (256, 256, 1), "gnn.layers.0.attn.merge.weight": (256, 256, 1),
-                "gnn.layers.17.attn.proj.2.bias": (256,), "gnn.layers.5.mlp.0.weight": (512, 512, 1),
-                "gnn.layers.5.mlp.1.running_mean": (512,), "gnn.layers.5.mlp.3.weight": (256, 512, 1),
-                "final_proj.weight": (256, 256, 1), "bin_score": ()}
+    expected = {
+        "kenc.encoder.0.weight": (32, 3, 1),
+        "kenc.encoder.10.running_var": (256,),
+        "kenc.encoder.12.weight": (256, 256, 1),
+        "gnn.layers.0.attn.merge.weight": (256, 256, 1),
+        "gnn.layers.17.attn.proj.2.bias": (256,),
+        "gnn.layers.5.mlp.0.weight": (512, 512, 1),
+        "gnn.layers.5.mlp.1.running_mean": (512,),
+        "gnn.layers.5.mlp.3.weight": (256, 512, 1),
+        "final_proj.weight": (256, 256, 1),
+        "bin_score": (),
+    }
     for k, shape in expected.items():
         assert tuple(sd[k].shape) == shape, k
     assert "gnn.layers.18.attn.merge.weight" not in sd
@@ -263,7 +284,7 @@ def test_missing_weights_offline_names_url_and_path(weights_dir, tmp_path):
     msg = str(e.value)
     assert "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superpoint_v1.pth" in msg
     assert str(tmp_path / "cache" / "weights" / "superpoint_v1.pth") in msg
-    with pytest.raises(WeightsNotFound, match="superpoint_lightglue.pth"):
+    with pytest.raises(WeightsNotFound, match=r"superpoint_lightglue\.pth"):
         build_matcher({"name": "lightglue", "features": "superpoint"}, "cpu")
     with pytest.raises(AerolocError, match="not a readable PyTorch checkpoint"):
         (weights_dir / "superpoint_v1.pth").write_bytes(b"not a checkpoint")

@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from aeroloc.core import geo
-from aeroloc.retrieval.database import Database
-from aeroloc.core.images import read_image
 from aeroloc.bench.metrics import tile_contains
+from aeroloc.core import geo
+from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
+from aeroloc.retrieval.database import Database
 
 METHOD, RERANK = "xfeat-vlad", "xfeat-lighterglue"
 # Chosen after localizing the 48 queries of 2012 and 2014 (and a few others) against this 35-tile database:
@@ -133,8 +133,24 @@ def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev,
     with pytest.raises(AerolocError, match="north-up queries need no rotation search"):
         heading_conf(None, True, 4)
     out = tmp_path / "r.csv"
-    p = subprocess.run([sys.executable, "-m", "aeroloc.cli", "localize", str(tmp_path), str(naip_dev), "--north-up",
-                        "--rotations", "4", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "aeroloc.cli",
+            "localize",
+            str(tmp_path),
+            str(naip_dev),
+            "--north-up",
+            "--rotations",
+            "4",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     lines = [line for line in p.stderr.splitlines() if line.strip()]
     assert p.returncode == 2 and "Traceback" not in p.stderr + p.stdout
     assert len(lines) == 1 and "--north-up and --rotations > 1 contradict each other" in lines[0], lines

@@ -12,9 +12,9 @@ import pytest
 from affine import Affine
 from pyproj import Geod, Transformer
 
+from aeroloc.bench.metrics import Result, evaluate, first_hit, read_results, tile_contains
 from aeroloc.cli import main
 from aeroloc.core.errors import AerolocError
-from aeroloc.bench.metrics import Result, evaluate, first_hit, read_results, tile_contains
 from aeroloc.core.queries import Query
 from aeroloc.maps.tiling import CSV_COLUMNS, Tile, tile_row
 
@@ -83,8 +83,12 @@ def test_shared_boundaries_count_for_both_tiles():
 
 
 def test_a_millimetre_outside_is_outside():
-    for e, n in [(490000.0 - 1e-3, 5209750.0), (490500.0 + 1e-3, 5209750.0), (490250.0, 5210000.0 + 1e-3),
-                 (490250.0, 5209500.0 - 1e-3)]:
+    for e, n in [
+        (490000.0 - 1e-3, 5209750.0),
+        (490500.0 + 1e-3, 5209750.0),
+        (490250.0, 5210000.0 + 1e-3),
+        (490250.0, 5209500.0 - 1e-3),
+    ]:
         assert not tile_contains(A, *utm_latlon(e, n))
     tiles = {t.id: t for t in TILES}
     assert first_hit(("A", "B", "C", "unknown"), tiles, *TRUTH["q6"]) is None
@@ -165,37 +169,71 @@ def test_read_results(tmp_path):
     (tmp_path / "bad2.csv").write_text("name,lat,lon\nq0,47.0,west\n")
     with pytest.raises(AerolocError, match=r"bad2.csv:2"):
         read_results(tmp_path / "bad2.csv")
-    with pytest.raises(AerolocError, match="none.csv"):
+    with pytest.raises(AerolocError, match=r"none\.csv"):
         read_results(tmp_path / "none.csv")
 
 
 def test_cli_evaluate_writes_the_documented_json(tmp_path, capsys):
     db = _write_case(tmp_path)
     out = tmp_path / "m" / "metrics.json"
-    rc = main(["evaluate", str(tmp_path / "results.csv"), "--truth", str(tmp_path / "truth.csv"),
-               "--tiles", str(db), "--json", str(out)])
+    rc = main(
+        [
+            "evaluate",
+            str(tmp_path / "results.csv"),
+            "--truth",
+            str(tmp_path / "truth.csv"),
+            "--tiles",
+            str(db),
+            "--json",
+            str(out),
+        ]
+    )
     assert rc == 0
     m = json.loads(out.read_text())
-    for key in ("vpr_recall@1", "vpr_recall@5", "vpr_recall@10", "georef_recall@10m", "georef_recall@25m",
-                "georef_recall@50m", "georef_recall@100m", "median_error_m", "not_localized"):
+    for key in (
+        "vpr_recall@1",
+        "vpr_recall@5",
+        "vpr_recall@10",
+        "georef_recall@10m",
+        "georef_recall@25m",
+        "georef_recall@50m",
+        "georef_recall@100m",
+        "median_error_m",
+        "not_localized",
+    ):
         assert key in m, key
     assert m["vpr_recall@1"] == pytest.approx(3 / 7) and m["georef_recall@50m"] == pytest.approx(3 / 7)
     assert m["median_error_m"] == pytest.approx(40.0, abs=1e-6) and m["not_localized"] == pytest.approx(2 / 7)
     table = capsys.readouterr().out
     assert "vpr_recall@1" in table and "georef_recall@50m" in table
     # other thresholds
-    rc = main(["evaluate", str(tmp_path / "results.csv"), "--truth", str(tmp_path / "truth.csv"),
-               "--tiles", str(db), "--thresholds", "30,300", "--json", str(out)])
+    rc = main(
+        [
+            "evaluate",
+            str(tmp_path / "results.csv"),
+            "--truth",
+            str(tmp_path / "truth.csv"),
+            "--tiles",
+            str(db),
+            "--thresholds",
+            "30,300",
+            "--json",
+            str(out),
+        ]
+    )
     m = json.loads(out.read_text())
     assert rc == 0 and m["georef_recall@30m"] == pytest.approx(2 / 7) and "georef_recall@50m" not in m
     assert np.isclose(m["georef_recall@300m"], 5 / 7)
 
 
-@pytest.mark.parametrize("args,match", [
-    (["--thresholds", "10,abc"], "--thresholds"),
-    (["--thresholds", "-5"], "positive"),
-    (["--tiles", "NOWHERE"], "tiles.csv"),
-])
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        (["--thresholds", "10,abc"], "--thresholds"),
+        (["--thresholds", "-5"], "positive"),
+        (["--tiles", "NOWHERE"], "tiles.csv"),
+    ],
+)
 def test_cli_evaluate_errors(tmp_path, capsys, args, match):
     db = _write_case(tmp_path)
     argv = ["evaluate", str(tmp_path / "results.csv"), "--truth", str(tmp_path / "truth.csv"), "--tiles", str(db)]

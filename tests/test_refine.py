@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from aeroloc.core import geo
-from aeroloc.retrieval.database import Database
-from aeroloc.maps.sources import open_map
 from aeroloc.localization.window import beyond_tile, query_window
+from aeroloc.maps.sources import open_map
+from aeroloc.retrieval.database import Database
 
 
 @pytest.fixture(scope="module")
@@ -67,12 +67,12 @@ def test_weak_tile_match_passes_on_its_map_window(db, naip_dev):
     """naip_20120731_n_006 (725 m, 2012) against its true tile: LighterGlue finds < min_inliers similarity inliers
     on the 1280 m tile, but the window the hypothesis covers (query footprint + 20 %) holds the matches to localize
     it within 25 m; a wrong tile's hypothesis gives a window that does not pass."""
-    from aeroloc.localization.alignment import align
     from aeroloc.core.images import read_image
-    from aeroloc.matching.features import extract
-    from aeroloc.localization.localizer import Localizer
     from aeroloc.core.queries import load_queries
+    from aeroloc.localization.alignment import align
     from aeroloc.localization.cascade import Candidate
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.matching.features import extract
 
     q = {q.name: q for q in load_queries(naip_dev)}["naip_20120731_n_006.jpg"]
     image = read_image(q.path)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from aeroloc.core import geo
-from aeroloc.retrieval.database import Database
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
 from aeroloc.localization.cascade import Candidate, Reranker
+from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import Retriever
 
 # 2012 query with a true tile at retrieval rank 1 and ~450 verified inliers (see test_localize.py)
@@ -54,14 +54,20 @@ def _localize(db, reranker, image, tile_ids):
 
     best = reranker(image, tile_ids, 1).candidates[0]
     m = db.info["map"]
-    a = align(best.H, best.score, (image.shape[1], image.shape[0]), db.by_id[best.tile_id],
-              (int(m["width"]), int(m["height"])), reranker.conf["min_inliers"])
+    a = align(
+        best.H,
+        best.score,
+        (image.shape[1], image.shape[0]),
+        db.by_id[best.tile_id],
+        (int(m["width"]), int(m["height"])),
+        reranker.conf["min_inliers"],
+    )
     return best, a
 
 
 @pytest.mark.slow
 def test_upright_query_costs_one_extraction_and_no_matcher(db, reranker, query, count_extractions):
-    q, image = query
+    _q, image = query
     tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
     res = reranker(image, tile_ids, 1)
     best = res.candidates[0]
@@ -75,7 +81,7 @@ def test_upright_query_costs_one_extraction_and_no_matcher(db, reranker, query, 
 def test_quarter_turned_query_is_found_at_its_rotation_and_lands_on_the_same_spot(db, reranker, query):
     q, image = query
     tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
-    best0, a0 = _localize(db, reranker, image, tile_ids)
+    _best0, a0 = _localize(db, reranker, image, tile_ids)
     turned = np.ascontiguousarray(np.rot90(image, 1))  # turned 90° counter-clockwise
     best1, a1 = _localize(db, reranker, turned, tile_ids)  # same candidates: this tests re-ranking only
     assert a0.localized and a1.localized, (a0.status, a1.status)

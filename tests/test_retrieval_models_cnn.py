@@ -14,9 +14,9 @@ import torch
 from rasterio.windows import Window
 
 from aeroloc.core.errors import AerolocError, WeightsNotFound
+from aeroloc.core.weights import cache_dir
 from aeroloc.retrieval.models import build_method, method_class
 from aeroloc.retrieval.models.netvlad import NetVLADLayer, read_matconvnet, state_from_matconvnet
-from aeroloc.core.weights import cache_dir
 
 
 def meta_model(name: str, conf: dict | None = None):
@@ -38,39 +38,109 @@ def meta_model(name: str, conf: dict | None = None):
 # README table C x R = 1024 x 4 / 256 x 2 / 64 x 2; BoQ: proj 512, 64 queries, 8 heads -> in_proj 3 x 512,
 # row_dim 32; NetVLAD: 64 clusters x 512 channels, whitening 32768 -> 4096).
 LAYOUTS = [
-    ("cosplace", {"backbone": "ResNet18", "dim": 32}, 123,
-     {"backbone.0.weight": (64, 3, 7, 7), "backbone.7.1.conv2.weight": (512, 512, 3, 3),
-      "aggregation.1.p": (1,), "aggregation.3.weight": (32, 512), "aggregation.3.bias": (32,)}),
-    ("cosplace", {"backbone": "ResNet50", "dim": 2048}, 321,
-     {"backbone.7.2.conv3.weight": (2048, 512, 1, 1), "aggregation.3.weight": (2048, 2048)}),
-    ("cosplace", {"backbone": "ResNet101", "dim": 1024}, 627,
-     {"backbone.6.22.conv3.weight": (1024, 256, 1, 1), "aggregation.3.weight": (1024, 2048)}),
-    ("cosplace", {"backbone": "ResNet152", "dim": 512}, 933,
-     {"backbone.6.35.bn3.running_var": (1024,), "aggregation.3.weight": (512, 2048)}),
-    ("cosplace", {"backbone": "VGG16", "dim": 64}, 29,
-     {"backbone.0.weight": (64, 3, 3, 3), "backbone.28.weight": (512, 512, 3, 3), "aggregation.3.weight": (64, 512)}),
+    (
+        "cosplace",
+        {"backbone": "ResNet18", "dim": 32},
+        123,
+        {
+            "backbone.0.weight": (64, 3, 7, 7),
+            "backbone.7.1.conv2.weight": (512, 512, 3, 3),
+            "aggregation.1.p": (1,),
+            "aggregation.3.weight": (32, 512),
+            "aggregation.3.bias": (32,),
+        },
+    ),
+    (
+        "cosplace",
+        {"backbone": "ResNet50", "dim": 2048},
+        321,
+        {"backbone.7.2.conv3.weight": (2048, 512, 1, 1), "aggregation.3.weight": (2048, 2048)},
+    ),
+    (
+        "cosplace",
+        {"backbone": "ResNet101", "dim": 1024},
+        627,
+        {"backbone.6.22.conv3.weight": (1024, 256, 1, 1), "aggregation.3.weight": (1024, 2048)},
+    ),
+    (
+        "cosplace",
+        {"backbone": "ResNet152", "dim": 512},
+        933,
+        {"backbone.6.35.bn3.running_var": (1024,), "aggregation.3.weight": (512, 2048)},
+    ),
+    (
+        "cosplace",
+        {"backbone": "VGG16", "dim": 64},
+        29,
+        {"backbone.0.weight": (64, 3, 3, 3), "backbone.28.weight": (512, 512, 3, 3), "aggregation.3.weight": (64, 512)},
+    ),
     ("eigenplaces", {"backbone": "ResNet18", "dim": 256}, 123, {"aggregation.3.weight": (256, 512)}),
-    ("eigenplaces", {"backbone": "ResNet50", "dim": 2048}, 321,
-     {"backbone.4.0.downsample.0.weight": (256, 64, 1, 1), "aggregation.1.p": (1,),
-      "aggregation.3.weight": (2048, 2048)}),
+    (
+        "eigenplaces",
+        {"backbone": "ResNet50", "dim": 2048},
+        321,
+        {
+            "backbone.4.0.downsample.0.weight": (256, 64, 1, 1),
+            "aggregation.1.p": (1,),
+            "aggregation.3.weight": (2048, 2048),
+        },
+    ),
     ("eigenplaces", {"backbone": "ResNet101", "dim": 128}, 627, {"aggregation.3.weight": (128, 2048)}),
     ("eigenplaces", {"backbone": "VGG16", "dim": 512}, 29, {"aggregation.3.weight": (512, 512)}),
-    ("mixvpr", {"dim": 4096}, 286,
-     {"backbone.model.conv1.weight": (64, 3, 7, 7), "backbone.model.layer3.5.conv3.weight": (1024, 256, 1, 1),
-      "aggregator.mix.0.mix.0.weight": (400,), "aggregator.mix.3.mix.3.weight": (400, 400),
-      "aggregator.channel_proj.weight": (1024, 1024), "aggregator.row_proj.weight": (4, 400),
-      "aggregator.row_proj.bias": (4,)}),
-    ("mixvpr", {"dim": 512}, 286, {"aggregator.channel_proj.weight": (256, 1024), "aggregator.row_proj.weight": (2, 400)}),
-    ("mixvpr", {"dim": 128}, 286, {"aggregator.channel_proj.weight": (64, 1024), "aggregator.row_proj.weight": (2, 400)}),
-    ("boq", None, 314,
-     {"backbone.net.0.weight": (64, 3, 7, 7), "backbone.net.6.5.conv3.weight": (1024, 256, 1, 1),
-      "aggregator.proj_c.weight": (512, 1024, 3, 3), "aggregator.norm_input.weight": (512,),
-      "aggregator.boqs.0.queries": (1, 64, 512), "aggregator.boqs.1.encoder.self_attn.in_proj_weight": (1536, 512),
-      "aggregator.boqs.1.encoder.linear1.weight": (2048, 512), "aggregator.boqs.0.cross_attn.out_proj.weight": (512, 512),
-      "aggregator.fc.weight": (32, 128)}),
-    ("netvlad", {"dim": 4096}, 31,
-     {"backbone.28.weight": (512, 512, 3, 3), "netvlad.score_proj.weight": (64, 512, 1), "netvlad.centers": (512, 64),
-      "whiten.weight": (4096, 32768), "whiten.bias": (4096,)}),
+    (
+        "mixvpr",
+        {"dim": 4096},
+        286,
+        {
+            "backbone.model.conv1.weight": (64, 3, 7, 7),
+            "backbone.model.layer3.5.conv3.weight": (1024, 256, 1, 1),
+            "aggregator.mix.0.mix.0.weight": (400,),
+            "aggregator.mix.3.mix.3.weight": (400, 400),
+            "aggregator.channel_proj.weight": (1024, 1024),
+            "aggregator.row_proj.weight": (4, 400),
+            "aggregator.row_proj.bias": (4,),
+        },
+    ),
+    (
+        "mixvpr",
+        {"dim": 512},
+        286,
+        {"aggregator.channel_proj.weight": (256, 1024), "aggregator.row_proj.weight": (2, 400)},
+    ),
+    (
+        "mixvpr",
+        {"dim": 128},
+        286,
+        {"aggregator.channel_proj.weight": (64, 1024), "aggregator.row_proj.weight": (2, 400)},
+    ),
+    (
+        "boq",
+        None,
+        314,
+        {
+            "backbone.net.0.weight": (64, 3, 7, 7),
+            "backbone.net.6.5.conv3.weight": (1024, 256, 1, 1),
+            "aggregator.proj_c.weight": (512, 1024, 3, 3),
+            "aggregator.norm_input.weight": (512,),
+            "aggregator.boqs.0.queries": (1, 64, 512),
+            "aggregator.boqs.1.encoder.self_attn.in_proj_weight": (1536, 512),
+            "aggregator.boqs.1.encoder.linear1.weight": (2048, 512),
+            "aggregator.boqs.0.cross_attn.out_proj.weight": (512, 512),
+            "aggregator.fc.weight": (32, 128),
+        },
+    ),
+    (
+        "netvlad",
+        {"dim": 4096},
+        31,
+        {
+            "backbone.28.weight": (512, 512, 3, 3),
+            "netvlad.score_proj.weight": (64, 512, 1),
+            "netvlad.centers": (512, 64),
+            "whiten.weight": (4096, 32768),
+            "whiten.bias": (4096,),
+        },
+    ),
     ("netvlad", {"dim": 32768}, 29, {"backbone.26.bias": (512,), "netvlad.centers": (512, 64)}),
 ]
 
@@ -85,15 +155,24 @@ def test_state_dict_matches_authors_layout(name, conf, n_keys, shapes):
     assert model.dim == (conf or {}).get("dim", model.default_conf["dim"])
 
 
-@pytest.mark.parametrize("name,conf,url", [
-    # URLs from the authors' hubconf.py / README / VPR-methods-evaluation
-    ("cosplace", {"backbone": "ResNet18", "dim": 32},
-     "https://github.com/gmberton/CosPlace/releases/download/v1.0/ResNet18_32_cosplace.pth"),
-    ("eigenplaces", {"backbone": "ResNet101", "dim": 2048},
-     "https://github.com/gmberton/EigenPlaces/releases/download/v1.0/ResNet101_2048_eigenplaces.pth"),
-    ("boq", None, "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/resnet50_16384.pth"),
-    ("netvlad", {"weights": "TokyoTM"}, "https://cvg-data.inf.ethz.ch/hloc/netvlad/TokyoTM_struct.mat"),
-])
+@pytest.mark.parametrize(
+    "name,conf,url",
+    [
+        # URLs from the authors' hubconf.py / README / VPR-methods-evaluation
+        (
+            "cosplace",
+            {"backbone": "ResNet18", "dim": 32},
+            "https://github.com/gmberton/CosPlace/releases/download/v1.0/ResNet18_32_cosplace.pth",
+        ),
+        (
+            "eigenplaces",
+            {"backbone": "ResNet101", "dim": 2048},
+            "https://github.com/gmberton/EigenPlaces/releases/download/v1.0/ResNet101_2048_eigenplaces.pth",
+        ),
+        ("boq", None, "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/resnet50_16384.pth"),
+        ("netvlad", {"weights": "TokyoTM"}, "https://cvg-data.inf.ethz.ch/hloc/netvlad/TokyoTM_struct.mat"),
+    ],
+)
 def test_weight_urls(name, conf, url):
     assert meta_model(name, conf).weight_source.url == url
 
@@ -102,8 +181,11 @@ def test_every_variant_has_its_own_weights_file():
     names = []
     for name in ("cosplace", "eigenplaces"):
         cls = method_class(name)
-        names += [meta_model(name, {"backbone": b, "dim": d}).weight_source.filename
-                  for b, dims in cls.AVAILABLE.items() for d in dims]
+        names += [
+            meta_model(name, {"backbone": b, "dim": d}).weight_source.filename
+            for b, dims in cls.AVAILABLE.items()
+            for d in dims
+        ]
     names += [meta_model("mixvpr", {"dim": d}).weight_source.filename for d in (128, 512, 4096)]
     names += [meta_model("netvlad", {"weights": w}).weight_source.filename for w in ("Pitts30K", "TokyoTM")]
     names.append(meta_model("boq").weight_source.filename)
@@ -111,16 +193,19 @@ def test_every_variant_has_its_own_weights_file():
     assert len(set(names)) == len(names)
 
 
-@pytest.mark.parametrize("name,conf", [
-    ("cosplace", {"backbone": "ResNet18", "dim": 2048}),  # not released
-    ("cosplace", {"backbone": "ResNet34", "dim": 512}),
-    ("eigenplaces", {"backbone": "ResNet152", "dim": 512}),
-    ("mixvpr", {"dim": 1024}),
-    ("mixvpr", {"resize": 384}),
-    ("boq", {"dim": 12288}),
-    ("netvlad", {"dim": 1024}),
-    ("netvlad", {"weights": "MSLS"}),
-])
+@pytest.mark.parametrize(
+    "name,conf",
+    [
+        ("cosplace", {"backbone": "ResNet18", "dim": 2048}),  # not released
+        ("cosplace", {"backbone": "ResNet34", "dim": 512}),
+        ("eigenplaces", {"backbone": "ResNet152", "dim": 512}),
+        ("mixvpr", {"dim": 1024}),
+        ("mixvpr", {"resize": 384}),
+        ("boq", {"dim": 12288}),
+        ("netvlad", {"dim": 1024}),
+        ("netvlad", {"weights": "MSLS"}),
+    ],
+)
 def test_unknown_variant_is_a_clear_error(name, conf):
     with pytest.raises(AerolocError):
         meta_model(name, conf)
@@ -151,8 +236,10 @@ def write_netvlad_mat(path, state: dict, whiten: bool, mean_image: np.ndarray) -
         if f"backbone.{i}.weight" in state:
             w = state[f"backbone.{i}.weight"].permute(2, 3, 1, 0).numpy()
             layers[i] = {"type": "conv", "weights": cell(w, state[f"backbone.{i}.bias"].numpy())}
-    layers[30] = {"type": "custom", "weights": cell(state["netvlad.score_proj.weight"][..., 0].T.numpy(),
-                                                    -state["netvlad.centers"].numpy())}
+    layers[30] = {
+        "type": "custom",
+        "weights": cell(state["netvlad.score_proj.weight"][..., 0].T.numpy(), -state["netvlad.centers"].numpy()),
+    }
     if whiten:
         w = state["whiten.weight"].T.numpy()[None, None]
         layers[33] = {"type": "conv", "weights": cell(w, state["whiten.bias"].numpy())}
@@ -211,7 +298,7 @@ def test_netvlad_loads_the_matconvnet_file_and_describes_a_tile(tmp_path, monkey
     assert model.mean.flatten().tolist() == mean.tolist()
     with torch.inference_mode():
         x = model.preprocess(naip_tile)
-        assert x.shape == (3, 224, 224) and 0 <= x.min() and x.max() <= 255
+        assert x.shape == (3, 224, 224) and x.min() >= 0 and x.max() <= 255
         desc = model(x[None])
     assert desc.shape == (1, 32768)
     assert desc.norm(dim=1).item() == pytest.approx(1.0, abs=1e-5)
@@ -255,10 +342,16 @@ def test_netvlad_layer_equals_the_residual_sum():
 
 OFFLINE_CASES = [
     ("netvlad", {"dim": 32768}, "https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat"),
-    ("cosplace", {"backbone": "ResNet18", "dim": 32},
-     "https://github.com/gmberton/CosPlace/releases/download/v1.0/ResNet18_32_cosplace.pth"),
-    ("eigenplaces", {"backbone": "ResNet18", "dim": 256},
-     "https://github.com/gmberton/EigenPlaces/releases/download/v1.0/ResNet18_256_eigenplaces.pth"),
+    (
+        "cosplace",
+        {"backbone": "ResNet18", "dim": 32},
+        "https://github.com/gmberton/CosPlace/releases/download/v1.0/ResNet18_32_cosplace.pth",
+    ),
+    (
+        "eigenplaces",
+        {"backbone": "ResNet18", "dim": 256},
+        "https://github.com/gmberton/EigenPlaces/releases/download/v1.0/ResNet18_256_eigenplaces.pth",
+    ),
     ("mixvpr", {"dim": 4096}, "https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view"),
     ("boq", None, "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/resnet50_16384.pth"),
 ]
@@ -290,20 +383,23 @@ def foreign_checkpoint(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("name,conf", [
-    ("cosplace", {"backbone": "ResNet18", "dim": 64}),  # same keys, FC of another size
-    ("eigenplaces", {"backbone": "ResNet50", "dim": 2048}),
-    ("mixvpr", {"dim": 128}),
-    ("boq", None),
-    ("netvlad", {"dim": 32768}),  # a .pth given instead of the .mat
-])
+@pytest.mark.parametrize(
+    "name,conf",
+    [
+        ("cosplace", {"backbone": "ResNet18", "dim": 64}),  # same keys, FC of another size
+        ("eigenplaces", {"backbone": "ResNet50", "dim": 2048}),
+        ("mixvpr", {"dim": 128}),
+        ("boq", None),
+        ("netvlad", {"dim": 32768}),  # a .pth given instead of the .mat
+    ],
+)
 def test_wrong_checkpoint_is_an_aeroloc_error(name, conf, foreign_checkpoint, tmp_path, monkeypatch):
     model = meta_model(name, conf)
     target = tmp_path / model.weight_source.filename
     target.write_bytes(foreign_checkpoint.read_bytes())
     monkeypatch.setenv("AEROLOC_WEIGHTS_DIR", str(tmp_path))
 
-    with pytest.raises(AerolocError, match="does not fit|missing|not a MatConvNet|not a readable") as err:
+    with pytest.raises(AerolocError, match=r"does not fit|missing|not a MatConvNet|not a readable") as err:
         model.load_weights()
     assert str(target) in str(err.value)
     assert "\n" not in str(err.value)
@@ -315,9 +411,8 @@ def test_netvlad_mat_without_the_vlad_layer_is_an_aeroloc_error(tmp_path):
     layers = np.empty(3, dtype=object)
     layers[:] = [{"type": "relu"}] * 3
     savemat(tmp_path / "short.mat", {"net": {"layers": layers}})
-    with pytest.raises(AerolocError, match="short.mat"):
-        state_from_matconvnet(read_matconvnet(tmp_path / "short.mat"), [0], whiten=False,
-                              source=tmp_path / "short.mat")
+    with pytest.raises(AerolocError, match=r"short\.mat"):
+        state_from_matconvnet(read_matconvnet(tmp_path / "short.mat"), [0], whiten=False, source=tmp_path / "short.mat")
 
 
 def test_mixvpr_rejects_input_of_another_size():

@@ -69,17 +69,41 @@ def _check_descriptors(desc: torch.Tensor, dim: int, n: int):
 # pos_embed, mask_token, patch_embed.proj.weight/bias) + 14 per block (norm1 x2, attn.qkv x2, attn.proj x2,
 # ls1.gamma, norm2 x2, mlp.fc1/fc2 or mlp.w12/w3 x4, ls2.gamma) + norm x2. pos_embed: 1 + (518/14)^2 = 1370 rows.
 # SwiGLUFFNFused hidden for ViT-G: (int(4*1536*2/3) + 7) // 8 * 8 = 4096, so w12 is 2*4096 x 1536.
-@pytest.mark.parametrize("arch, n_keys, pinned", [
-    ("vits14", 5 + 12 * 14 + 2, {"pos_embed": (1, 1370, 384), "blocks.11.attn.qkv.weight": (1152, 384),
-                                 "mask_token": (1, 384)}),
-    ("vitb14", 5 + 12 * 14 + 2, {"patch_embed.proj.weight": (768, 3, 14, 14), "blocks.11.mlp.fc1.weight": (3072, 768),
-                                 "cls_token": (1, 1, 768)}),
-    ("vitl14", 5 + 24 * 14 + 2, {"pos_embed": (1, 1370, 1024), "blocks.23.ls2.gamma": (1024,),
-                                 "blocks.23.mlp.fc2.weight": (1024, 4096)}),
-    ("vitg14", 5 + 40 * 14 + 2, {"pos_embed": (1, 1370, 1536), "blocks.39.mlp.w12.weight": (8192, 1536),
-                                 "blocks.39.mlp.w3.weight": (1536, 4096), "blocks.39.ls1.gamma": (1536,),
-                                 "norm.weight": (1536,)}),
-])
+@pytest.mark.parametrize(
+    "arch, n_keys, pinned",
+    [
+        (
+            "vits14",
+            5 + 12 * 14 + 2,
+            {"pos_embed": (1, 1370, 384), "blocks.11.attn.qkv.weight": (1152, 384), "mask_token": (1, 384)},
+        ),
+        (
+            "vitb14",
+            5 + 12 * 14 + 2,
+            {
+                "patch_embed.proj.weight": (768, 3, 14, 14),
+                "blocks.11.mlp.fc1.weight": (3072, 768),
+                "cls_token": (1, 1, 768),
+            },
+        ),
+        (
+            "vitl14",
+            5 + 24 * 14 + 2,
+            {"pos_embed": (1, 1370, 1024), "blocks.23.ls2.gamma": (1024,), "blocks.23.mlp.fc2.weight": (1024, 4096)},
+        ),
+        (
+            "vitg14",
+            5 + 40 * 14 + 2,
+            {
+                "pos_embed": (1, 1370, 1536),
+                "blocks.39.mlp.w12.weight": (8192, 1536),
+                "blocks.39.mlp.w3.weight": (1536, 4096),
+                "blocks.39.ls1.gamma": (1536,),
+                "norm.weight": (1536,),
+            },
+        ),
+    ],
+)
 def test_dinov2_state_dict_matches_hub_checkpoints(arch, n_keys, pinned):
     with torch.device("meta"):
         shapes = _shapes(DinoV2(arch))
@@ -94,23 +118,63 @@ def test_dinov2_state_dict_matches_hub_checkpoints(arch, n_keys, pinned):
 # cluster_dim 256: linear 64*256 + 256 = 16640 -> 8448. AnyLoc: ViT-G blocks 0..31 only (5 + 32*14 + 2) + c_centers.
 # SelaVPR (network.py + backbone/dinov2/block.py): ViT-L with 8 adapter tensors per block (adapter1/2.D_fc1/2,
 # hidden int(1024 * 0.5) = 512): 5 + 24*22 + 2 = 535, + aggregation.1.p + LocalAdapt.upconv1/2 (4) = 540.
-@pytest.mark.parametrize("name, n_keys, dim, side, pinned", [
-    ("salad", 175 + 13, 8448, 322, {
-        "backbone.model.pos_embed": (1, 1370, 768), "backbone.model.blocks.11.ls2.gamma": (768,),
-        "aggregator.token_features.2.weight": (256, 512), "aggregator.cluster_features.3.weight": (128, 512, 1, 1),
-        "aggregator.score.3.weight": (64, 512, 1, 1), "aggregator.dust_bin": ()}),
-    ("megaloc", 175 + 13 + 2, 8448, 322, {
-        "backbone.model.blocks.0.attn.qkv.weight": (2304, 768), "aggregator.agg.token_features.0.weight": (512, 768),
-        "aggregator.agg.cluster_features.3.weight": (256, 512, 1, 1), "aggregator.linear.weight": (8448, 16640),
-        "aggregator.linear.bias": (8448,)}),
-    ("anyloc", 5 + 32 * 14 + 2 + 1, 32 * 1536, 322, {
-        "backbone.blocks.31.attn.qkv.weight": (4608, 1536), "backbone.blocks.31.mlp.w12.weight": (8192, 1536),
-        "c_centers": (32, 1536)}),
-    ("selavpr", 5 + 24 * 22 + 2 + 1 + 4, 1024, 224, {
-        "backbone.blocks.0.adapter1.D_fc1.weight": (512, 1024), "backbone.blocks.23.adapter2.D_fc2.weight": (1024, 512),
-        "backbone.blocks.23.mlp.fc1.weight": (4096, 1024), "aggregation.1.p": (1,),
-        "LocalAdapt.upconv1.weight": (1024, 256, 3, 3), "LocalAdapt.upconv2.weight": (256, 128, 3, 3)}),
-])
+@pytest.mark.parametrize(
+    "name, n_keys, dim, side, pinned",
+    [
+        (
+            "salad",
+            175 + 13,
+            8448,
+            322,
+            {
+                "backbone.model.pos_embed": (1, 1370, 768),
+                "backbone.model.blocks.11.ls2.gamma": (768,),
+                "aggregator.token_features.2.weight": (256, 512),
+                "aggregator.cluster_features.3.weight": (128, 512, 1, 1),
+                "aggregator.score.3.weight": (64, 512, 1, 1),
+                "aggregator.dust_bin": (),
+            },
+        ),
+        (
+            "megaloc",
+            175 + 13 + 2,
+            8448,
+            322,
+            {
+                "backbone.model.blocks.0.attn.qkv.weight": (2304, 768),
+                "aggregator.agg.token_features.0.weight": (512, 768),
+                "aggregator.agg.cluster_features.3.weight": (256, 512, 1, 1),
+                "aggregator.linear.weight": (8448, 16640),
+                "aggregator.linear.bias": (8448,),
+            },
+        ),
+        (
+            "anyloc",
+            5 + 32 * 14 + 2 + 1,
+            32 * 1536,
+            322,
+            {
+                "backbone.blocks.31.attn.qkv.weight": (4608, 1536),
+                "backbone.blocks.31.mlp.w12.weight": (8192, 1536),
+                "c_centers": (32, 1536),
+            },
+        ),
+        (
+            "selavpr",
+            5 + 24 * 22 + 2 + 1 + 4,
+            1024,
+            224,
+            {
+                "backbone.blocks.0.adapter1.D_fc1.weight": (512, 1024),
+                "backbone.blocks.23.adapter2.D_fc2.weight": (1024, 512),
+                "backbone.blocks.23.mlp.fc1.weight": (4096, 1024),
+                "aggregation.1.p": (1,),
+                "LocalAdapt.upconv1.weight": (1024, 256, 3, 3),
+                "LocalAdapt.upconv2.weight": (256, 128, 3, 3),
+            },
+        ),
+    ],
+)
 def test_method_state_dicts_match_authors_code(name, n_keys, dim, side, pinned):
     model = _on_meta(method_class(name))
     shapes = _shapes(model)
@@ -129,7 +193,7 @@ def test_anyloc_keeps_blocks_up_to_its_layer_from_the_full_vitg_checkpoint():
     model.load_checkpoint(full)  # meta -> meta: checks keys and shapes, copies nothing
     assert not any(k.startswith("backbone.blocks.32.") for k in model.state_dict())
     truncated = {k: v for k, v in full.items() if not k.startswith("blocks.39.")}
-    with pytest.raises(AerolocError, match="blocks.39"):
+    with pytest.raises(AerolocError, match=r"blocks\.39"):
         model.load_checkpoint(truncated)
 
 
@@ -192,10 +256,13 @@ def _random_model_state(cls, conf=None, seed=1):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, filename, probe", [
-    ("salad", "dino_salad.ckpt", "aggregator.score.3.weight"),
-    ("megaloc", "megaloc.torch", "aggregator.linear.bias"),
-])
+@pytest.mark.parametrize(
+    "name, filename, probe",
+    [
+        ("salad", "dino_salad.ckpt", "aggregator.score.3.weight"),
+        ("megaloc", "megaloc.torch", "aggregator.linear.bias"),
+    ],
+)
 def test_salad_and_megaloc_load_release_file_and_describe_naip(name, filename, probe, weights_dir, naip_tiles):
     state = _random_model_state(method_class(name))
     torch.save(state, weights_dir / filename)  # the release files are flat state dicts with these keys
@@ -249,8 +316,15 @@ def test_selavpr_loads_checkpoint_and_extracts_local_features(weights_dir, naip_
 
     state = {k: v.clone() for k, v in _random_model_state(SelaVPR, conf).items()}
     # util.save_checkpoint of a DataParallel model: nested dict, "module." prefix
-    torch.save({"epoch_num": 3, "model_state_dict": {f"module.{k}": v for k, v in state.items()}, "best_r5": 90.0,
-                "not_improved_num": 0}, weights_dir / "SelaVPR_msls.pth")
+    torch.save(
+        {
+            "epoch_num": 3,
+            "model_state_dict": {f"module.{k}": v for k, v in state.items()},
+            "best_r5": 90.0,
+            "not_improved_num": 0,
+        },
+        weights_dir / "SelaVPR_msls.pth",
+    )
     model = build_method("selavpr", conf)
     for key in ("aggregation.1.p", "backbone.blocks.1.adapter2.D_fc1.weight", "LocalAdapt.upconv2.weight"):
         assert torch.equal(model.state_dict()[key], state[key]), key

@@ -10,11 +10,11 @@ import sys
 import numpy as np
 import pytest
 
-from aeroloc.retrieval.database import Database
+from aeroloc.bench.metrics import tile_contains
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
-from aeroloc.bench.metrics import tile_contains
 from aeroloc.core.queries import load_queries
+from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import Retriever, rotate_image, rotated_views
 
 METHOD = "xfeat-vlad"
@@ -22,9 +22,16 @@ METHOD = "xfeat-vlad"
 # then nearly upright): 262, 184, 276, 82, 107, 277, 92 and 93 degrees. Measured on this database, queries with a
 # true tile in the top 5: 3/8 upright only -> 6/8 with rotations=4; top 10: 4/8 -> 7/8.
 # Chance (each centre lies in ~4 of the 35 tiles): top 5 ~0.48, top 10 ~0.78, so the top-5 counts say more.
-QUARTER_TURNED = ["naip_20090818_r_001.jpg", "naip_20090818_r_005.jpg", "naip_20090818_r_014.jpg",
-                  "naip_20090818_r_019.jpg", "naip_20100629_r_001.jpg", "naip_20100629_r_007.jpg",
-                  "naip_20100629_r_010.jpg", "naip_20100629_r_016.jpg"]
+QUARTER_TURNED = [
+    "naip_20090818_r_001.jpg",
+    "naip_20090818_r_005.jpg",
+    "naip_20090818_r_014.jpg",
+    "naip_20090818_r_019.jpg",
+    "naip_20100629_r_001.jpg",
+    "naip_20100629_r_007.jpg",
+    "naip_20100629_r_010.jpg",
+    "naip_20100629_r_016.jpg",
+]
 
 
 @pytest.fixture(scope="module")
@@ -165,7 +172,7 @@ def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeyp
 
     qs = load_queries(naip_dev)[:1]
     out = tmp_path / "r.csv"
-    kw = dict(top_n=3, method=METHOD, rerank=None, device="cpu", progress=False)
+    kw = {"top_n": 3, "method": METHOD, "rerank": None, "device": "cpu", "progress": False}
     first = loc.localize_queries(db, qs, out, rotations=1, **kw)
 
     class Boom(Exception):
@@ -181,8 +188,9 @@ def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeyp
 
 
 def aeroloc(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "aeroloc.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "aeroloc.cli", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
 
 
 @pytest.mark.parametrize("command", ["retrieve", "localize"])

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.io import config_key
+from aeroloc.matching.store import FeatureStore
 from aeroloc.retrieval.index import build_index, load_index, save_index, search
 from aeroloc.retrieval.store import DescriptorStore
-from aeroloc.matching.store import FeatureStore
-from aeroloc.core.io import config_key
 
 
 def unit_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
@@ -35,7 +35,7 @@ def test_descriptor_store_resumes_after_interruption_and_equals_one_shot(tmp_pat
     write(x[3:6])
     del write
     assert not part.complete
-    with pytest.raises(AerolocError, match="incomplete|missing"):
+    with pytest.raises(AerolocError, match=r"incomplete|missing"):
         DescriptorStore.open_complete(tmp_path / "part")
     # a new writer (new process) starts at the flushed row and keeps the rows written before
     again = DescriptorStore(tmp_path / "part", 10, 8)
@@ -89,10 +89,13 @@ def test_config_key_changes_with_any_part():
 # --- FeatureStore -------------------------------------------------------------------------------------------
 def features(n: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
-    return {"keypoints": (rng.random((n, 2)) * 500).astype(np.float32),
-            "descriptors": rng.standard_normal((n, 64)).astype(np.float32),
-            "scores": rng.random(n).astype(np.float32),
-            "image_size": np.array([512, 384], np.int64), "scale": np.float64(2.0)}
+    return {
+        "keypoints": (rng.random((n, 2)) * 500).astype(np.float32),
+        "descriptors": rng.standard_normal((n, 64)).astype(np.float32),
+        "scores": rng.random(n).astype(np.float32),
+        "image_size": np.array([512, 384], np.int64),
+        "scale": np.float64(2.0),
+    }
 
 
 def test_feature_store_round_trip(tmp_path):
@@ -220,9 +223,9 @@ def test_xfeat_tile_fits_200kb_and_stored_descriptors_match_like_float32(naip_ti
     import cv2
 
     from aeroloc.core.images import read_image
+    from aeroloc.localization.cascade import mutual_nn
     from aeroloc.matching.features import extract
     from aeroloc.matching.registry import build_reranker
-    from aeroloc.localization.cascade import mutual_nn
 
     extractor, _ = build_reranker("xfeat-lighterglue", "cpu")
     tile = read_image(naip_tiles_db / "images" / "r002c002.png")
@@ -255,13 +258,13 @@ def test_flat_inner_product_is_exact():
     np.testing.assert_array_equal(ids, expected)
     np.testing.assert_allclose(scores, np.take_along_axis(dots, expected, 1), atol=1e-5)
     # one query as a 1-d vector works too
-    s1, i1 = search(index, q[0], 3)
+    _s1, i1 = search(index, q[0], 3)
     np.testing.assert_array_equal(i1[0], expected[0, :3])
 
 
 def test_k_larger_than_ntotal_returns_all():
     db = unit_rows(7, 16)
-    scores, ids = search(build_index(db), db[:2], 50)
+    _scores, ids = search(build_index(db), db[:2], 50)
     assert ids.shape == (2, 7) and sorted(ids[0]) == list(range(7)) and (ids >= 0).all()
     assert ids[0, 0] == 0 and ids[1, 0] == 1  # each vector is its own nearest neighbour
     with pytest.raises(AerolocError, match=">= 1"):
@@ -312,8 +315,10 @@ def test_local_store_key_follows_the_tile_features_not_the_reranking_settings():
 
     db = types.SimpleNamespace(tiles_hash=lambda: "tiles")
     key = localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue"))
-    same = rerank_conf("xfeat-lighterglue", {"rotations": [0], "min_inliers": 50, "geometry": "homography",
-                                             "max_verify": 1, "matcher": {"min_conf": 0.5}})
+    same = rerank_conf(
+        "xfeat-lighterglue",
+        {"rotations": [0], "min_inliers": 50, "geometry": "homography", "max_verify": 1, "matcher": {"min_conf": 0.5}},
+    )
     assert localfeatures.local_key(db, "xfeat-lighterglue", same) == key
     for other in ({"tile_side": 384}, {"extractor": {"max_keypoints": 1024}}):
         assert localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue", other)) != key

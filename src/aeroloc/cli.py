@@ -26,7 +26,9 @@ COMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aeroloc", description="GNSS-free localization of aerial images against georeferenced maps.")
+    parser = argparse.ArgumentParser(
+        prog="aeroloc", description="GNSS-free localization of aerial images against georeferenced maps."
+    )
     parser.add_argument("--version", action="version", version=f"aeroloc {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
@@ -60,8 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"aeroloc {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"aeroloc {args.command}: interrupted; finished work is kept, run the same command to resume",
-              file=sys.stderr)
+        print(
+            f"aeroloc {args.command}: interrupted; finished work is kept, run the same command to resume",
+            file=sys.stderr,
+        )
         return 130
 
 

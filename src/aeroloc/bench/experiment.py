@@ -43,10 +43,31 @@ from pathlib import Path
 
 from aeroloc.core.errors import AerolocError
 
-KEYS = {"name", "description", "maps", "queries", "methods", "rerankers", "zooms", "overlaps", "top_n", "top_k",
-        "thresholds_m", "device", "output", "cache"}
-DEFAULTS = {"rerankers": ["none"], "zooms": [1.0], "overlaps": [0.0], "top_n": [20], "top_k": 1,
-            "thresholds_m": [10.0, 25.0, 50.0, 100.0], "device": "auto"}
+KEYS = {
+    "name",
+    "description",
+    "maps",
+    "queries",
+    "methods",
+    "rerankers",
+    "zooms",
+    "overlaps",
+    "top_n",
+    "top_k",
+    "thresholds_m",
+    "device",
+    "output",
+    "cache",
+}
+DEFAULTS = {
+    "rerankers": ["none"],
+    "zooms": [1.0],
+    "overlaps": [0.0],
+    "top_n": [20],
+    "top_k": 1,
+    "thresholds_m": [10.0, 25.0, 50.0, 100.0],
+    "device": "auto",
+}
 NO_RERANKER = "none"
 
 
@@ -64,7 +85,9 @@ class QuerySpec:
     map: str
     limit: int | None = None  # evenly spaced subset of this many queries
     north_up: bool = False  # images north-up within ±45°: the re-ranker skips its 90° rotation search
-    query_gsd: float | None = None  # metres per query pixel: the dense stage runs first (aeroloc.localization.dense_stage)
+    query_gsd: float | None = (
+        None  # metres per query pixel: the dense stage runs first (aeroloc.localization.dense_stage)
+    )
 
 
 @dataclass(frozen=True)
@@ -118,9 +141,19 @@ class Config:
         plus every setting that changes the measurement."""
         from aeroloc.core.io import config_key
 
-        parts = [self.map_identity or self.map_path, self.tile_m, self.queries_identity or self.queries_path,
-                 self.method, self.reranker, float(self.zoom), float(self.overlap), int(self.top_n), int(self.top_k),
-                 [float(t) for t in self.thresholds_m], self.device]
+        parts = [
+            self.map_identity or self.map_path,
+            self.tile_m,
+            self.queries_identity or self.queries_path,
+            self.method,
+            self.reranker,
+            float(self.zoom),
+            float(self.overlap),
+            int(self.top_n),
+            int(self.top_k),
+            [float(t) for t in self.thresholds_m],
+            self.device,
+        ]
         if self.max_queries is not None:  # only when set, so keys of full query sets stay as they were
             parts.append({"max_queries": int(self.max_queries)})
         if self.north_up:  # likewise only when set
@@ -137,8 +170,14 @@ class Config:
 
     def label(self) -> str:
         qs = self.queries_name if self.max_queries is None else f"{self.queries_name} ({self.max_queries} queries)"
-        parts = [qs, self.method, self.reranker or "retrieval", f"zoom {self.zoom:g}",
-                 f"overlap {self.overlap:g}", f"N={self.top_n}"]
+        parts = [
+            qs,
+            self.method,
+            self.reranker or "retrieval",
+            f"zoom {self.zoom:g}",
+            f"overlap {self.overlap:g}",
+            f"N={self.top_n}",
+        ]
         if self.reranker:
             parts.append(f"K={self.top_k}")
         if self.north_up:
@@ -218,10 +257,23 @@ class _Validator:
             self.fail("device", f"expected a device name (auto, cpu, cuda, cuda:N, mps), got {device!r}")
         output = self.resolve("output", raw.get("output") or f"runs/{name}", must_exist=False)
         cache = self.resolve("cache", raw["cache"], must_exist=False) if raw.get("cache") else output / "cache"
-        return Experiment(name=name.strip(), file=self.path.resolve(), maps=tuple(maps), queries=tuple(queries),
-                          methods=methods, rerankers=rerankers, zooms=zooms, overlaps=overlaps, top_n=top_n,
-                          top_k=top_k[0], thresholds_m=thresholds, device=device.strip(), output=output, cache=cache,
-                          description=str(raw.get("description") or ""))
+        return Experiment(
+            name=name.strip(),
+            file=self.path.resolve(),
+            maps=tuple(maps),
+            queries=tuple(queries),
+            methods=methods,
+            rerankers=rerankers,
+            zooms=zooms,
+            overlaps=overlaps,
+            top_n=top_n,
+            top_k=top_k[0],
+            thresholds_m=thresholds,
+            device=device.strip(),
+            output=output,
+            cache=cache,
+            description=str(raw.get("description") or ""),
+        )
 
     # --- fields -----------------------------------------------------------------------------------------
     def maps(self) -> list[MapSpec]:
@@ -233,8 +285,9 @@ class _Validator:
             tile_m = m.get("tile_m")
             if tile_m is not None and (not _is_number(tile_m) or not tile_m > 0):
                 self.fail(f"{where}.tile_m", f"must be a positive number of metres (or left out), got {tile_m!r}")
-            out.append(MapSpec(name, self.resolve(f"{where}.path", m.get("path")),
-                               None if tile_m is None else float(tile_m)))
+            out.append(
+                MapSpec(name, self.resolve(f"{where}.path", m.get("path")), None if tile_m is None else float(tile_m))
+            )
         self.unique("maps", [m.name for m in out])
         return out
 
@@ -407,14 +460,28 @@ def expand(exp: Experiment) -> list[Config]:
     for q in exp.queries:
         m = exp.map_spec(q.map)
         for method, zoom, overlap, reranker in itertools.product(exp.methods, exp.zooms, exp.overlaps, exp.rerankers):
-            for n in (exp.top_n if reranker else (max(exp.top_n),)):
-                c = Config(experiment=exp.name, map_name=m.name, map_path=str(m.path), tile_m=m.tile_m,
-                           queries_name=q.name, queries_path=str(q.path), method=method, reranker=reranker,
-                           zoom=zoom, overlap=overlap, top_n=n, top_k=min(exp.top_k, n),
-                           thresholds_m=exp.thresholds_m, device=exp.device, map_identity=ident(m.path),
-                           queries_identity=ident(q.path), max_queries=q.limit,
-                           north_up=q.north_up and reranker is not None,  # retrieval ignores both
-                           query_gsd=q.query_gsd if reranker is not None else None)
+            for n in exp.top_n if reranker else (max(exp.top_n),):
+                c = Config(
+                    experiment=exp.name,
+                    map_name=m.name,
+                    map_path=str(m.path),
+                    tile_m=m.tile_m,
+                    queries_name=q.name,
+                    queries_path=str(q.path),
+                    method=method,
+                    reranker=reranker,
+                    zoom=zoom,
+                    overlap=overlap,
+                    top_n=n,
+                    top_k=min(exp.top_k, n),
+                    thresholds_m=exp.thresholds_m,
+                    device=exp.device,
+                    map_identity=ident(m.path),
+                    queries_identity=ident(q.path),
+                    max_queries=q.limit,
+                    north_up=q.north_up and reranker is not None,  # retrieval ignores both
+                    query_gsd=q.query_gsd if reranker is not None else None,
+                )
                 if c.key() not in keys:  # e.g. one queries file listed under two names: measure it once
                     keys.add(c.key())
                     out.append(c)

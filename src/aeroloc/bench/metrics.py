@@ -75,8 +75,9 @@ def first_hit(top: tuple[str, ...], tiles: dict[str, Tile], lat: float, lon: flo
     return None
 
 
-def evaluate(results: list[Result], queries: list[Query], tiles: list[Tile] | None,
-             thresholds=DEFAULT_THRESHOLDS, ns=None) -> dict:
+def evaluate(
+    results: list[Result], queries: list[Query], tiles: list[Tile] | None, thresholds=DEFAULT_THRESHOLDS, ns=None
+) -> dict:
     """Metrics as fractions in [0, 1] (keys documented in the module docstring and the README)."""
     truth = [q for q in queries if q.has_truth]
     if not truth:

@@ -12,11 +12,18 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from aeroloc.bench.tables import (RECALL_NS, STAGE_NAMES, STAGES, by_dataset, describe, label_value,
-                                  retrieval_recall, varying)
+from aeroloc.bench.tables import (
+    RECALL_NS,
+    STAGE_NAMES,
+    STAGES,
+    by_dataset,
+    describe,
+    label_value,
+    retrieval_recall,
+    varying,
+)
 
-COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f",
-           "#bcbd22"]
+COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f", "#bcbd22"]
 STAGE_COLOURS = ["#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974"]
 
 
@@ -124,7 +131,7 @@ def time_bars(rows: list[dict], dataset: str, path: Path) -> Path | None:
         ax.text(total, i, f" {total:.0f}", va="center", fontsize=8)
     ax.set_yticks(range(len(rows)), labels, fontsize=8)
     ax.invert_yaxis()
-    ax.set_xlim(0, max(left + [1.0]) * 1.15)
+    ax.set_xlim(0, max([*left, 1.0]) * 1.15)
     ax.set_xlabel("ms per query")
     ax.legend(fontsize=8, ncols=len(STAGES), loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
     ax.grid(alpha=0.3, axis="x")

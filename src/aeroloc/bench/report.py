@@ -36,8 +36,9 @@ def leaflet_assets() -> tuple[str, str]:
     try:
         import xstatic.pkg.leaflet as xl
     except ImportError:
-        raise AerolocError("the HTML report needs Leaflet from the 'xstatic-leaflet' package: "
-                           "pip install xstatic-leaflet") from None
+        raise AerolocError(
+            "the HTML report needs Leaflet from the 'xstatic-leaflet' package: pip install xstatic-leaflet"
+        ) from None
     base = Path(xl.BASE_DIR)
     js = (base / "leaflet.js").read_text(encoding="utf-8")
     js = re.sub(r"//# sourceMappingURL=\S+\s*$", "", js)
@@ -110,17 +111,17 @@ def _downscaled(m, factor: int) -> tuple[np.ndarray, np.ndarray]:
         src_rows = min(rows * factor, m.height - r0 * factor)
         strip, ok = m.read(0, r0 * factor, m.width, src_rows)
         if factor == 1:
-            rgb[r0:r0 + rows], valid[r0:r0 + rows] = strip, ok
+            rgb[r0 : r0 + rows], valid[r0 : r0 + rows] = strip, ok
             continue
         pad = np.zeros((rows * factor, w * factor, 3), np.float32)
         wt = np.zeros((rows * factor, w * factor), np.float32)
-        pad[:src_rows, :m.width] = strip * ok[..., None]
-        wt[:src_rows, :m.width] = ok
+        pad[:src_rows, : m.width] = strip * ok[..., None]
+        wt[:src_rows, : m.width] = ok
         area = (w, rows)
         s_rgb = cv2.resize(pad, area, interpolation=cv2.INTER_AREA)
         s_wt = cv2.resize(wt, area, interpolation=cv2.INTER_AREA)
-        rgb[r0:r0 + rows] = np.clip(s_rgb / np.maximum(s_wt, 1e-6)[..., None], 0, 255).round().astype(np.uint8)
-        valid[r0:r0 + rows] = s_wt > 1 / 3
+        rgb[r0 : r0 + rows] = np.clip(s_rgb / np.maximum(s_wt, 1e-6)[..., None], 0, 255).round().astype(np.uint8)
+        valid[r0 : r0 + rows] = s_wt > 1 / 3
     return rgb, valid
 
 
@@ -144,15 +145,25 @@ def map_overlay(map_path, max_px: int = 1400) -> dict:
     west, south, east, north = array_bounds(h, w, src_t)
     dst_t, dw, dh = rasterio.warp.calculate_default_transform(crs, "EPSG:3857", w, h, west, south, east, north)
     dst = np.zeros((4, dh, dw), np.uint8)
-    rasterio.warp.reproject(src, dst, src_transform=src_t, src_crs=crs, dst_transform=dst_t, dst_crs="EPSG:3857",
-                            resampling=rasterio.warp.Resampling.bilinear)
+    rasterio.warp.reproject(
+        src,
+        dst,
+        src_transform=src_t,
+        src_crs=crs,
+        dst_transform=dst_t,
+        dst_crs="EPSG:3857",
+        resampling=rasterio.warp.Resampling.bilinear,
+    )
     dst[3] = np.where(dst[3] > 127, 255, 0)
     url = rgba_data_uri(dst.transpose(1, 2, 0))
     lat, lon = geo.latlon_from_mercator([dst_t.c, dst_t.c + dst_t.a * dw], [dst_t.f, dst_t.f + dst_t.e * dh])
     clat, clon = m.pixel_to_latlon([0, m.width, m.width, 0], [0, 0, m.height, m.height])
-    return {"url": url,
-            "bounds": [[float(min(lat)), float(min(lon))], [float(max(lat)), float(max(lon))]],
-            "outline": [[float(a), float(b)] for a, b in zip(clat, clon)], "name": Path(map_path).name}
+    return {
+        "url": url,
+        "bounds": [[float(min(lat)), float(min(lon))], [float(max(lat)), float(max(lon))]],
+        "outline": [[float(a), float(b)] for a, b in zip(clat, clon)],
+        "name": Path(map_path).name,
+    }
 
 
 def tile_footprints(db_folder) -> list[list[list[float]]] | None:
@@ -194,8 +205,8 @@ def sample_matches(qrows: list[dict], k: int = MAX_MATCH_IMAGES) -> list[dict]:
     with_img.sort(key=key)
     if len(with_img) <= k:
         return with_img
-    worst = with_img[len(with_img) - k // 2:]
-    best = with_img[:k - len(worst)]
+    worst = with_img[len(with_img) - k // 2 :]
+    best = with_img[: k - len(worst)]
     return best + worst
 
 
@@ -220,22 +231,45 @@ def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, t
         images[q["name"]] = img_id
         err = _num(q.get("error_m"))
         cap = f"{q['name']} — {'not localized' if err is None else f'{err:.1f} m'}, {q.get('inliers') or 0} inliers"
-        gallery.append(f"<figure class=thumb><img id={img_id} src='{uris[0]}' data-full='{uris[1]}' "
-                       f"alt='{html.escape(q['name'])}' loading=lazy><figcaption>{html.escape(cap)}</figcaption></figure>")
+        gallery.append(
+            f"<figure class=thumb><img id={img_id} src='{uris[0]}' data-full='{uris[1]}' "
+            f"alt='{html.escape(q['name'])}' loading=lazy><figcaption>{html.escape(cap)}</figcaption></figure>"
+        )
     configs = []
     for r in rows:
         pts = []
         for q in qrows_by_key.get(r["config_key"], []):
-            est = [q["est_lat"], q["est_lon"]] if _num(q.get("est_lat")) is not None and _num(q.get("est_lon")) is not None else None
-            pts.append({"n": q["name"], "t": [q["true_lat"], q["true_lon"]], "e": est, "err": _num(q.get("error_m")),
-                        "st": q.get("status") or "", "inl": q.get("inliers"), "rank": q.get("vpr_rank"),
-                        "img": images.get(q["name"]) if r is shown else None})
+            est = (
+                [q["est_lat"], q["est_lon"]]
+                if _num(q.get("est_lat")) is not None and _num(q.get("est_lon")) is not None
+                else None
+            )
+            pts.append(
+                {
+                    "n": q["name"],
+                    "t": [q["true_lat"], q["true_lon"]],
+                    "e": est,
+                    "err": _num(q.get("error_m")),
+                    "st": q.get("status") or "",
+                    "inl": q.get("inliers"),
+                    "rank": q.get("vpr_rank"),
+                    "img": images.get(q["name"]) if r is shown else None,
+                }
+            )
         configs.append({"label": _label(r, fields), "key": r["config_key"], "shown": r is shown, "points": pts})
-    view = {"id": f"map{idx}", "dataset": dataset, "thresholds": list(thresholds), "configs": configs,
-            "overlay": None, "tiles": None, "colours": ERROR_COLOURS, "grey": NOT_LOCALIZED_COLOUR}
+    view = {
+        "id": f"map{idx}",
+        "dataset": dataset,
+        "thresholds": list(thresholds),
+        "configs": configs,
+        "overlay": None,
+        "tiles": None,
+        "colours": ERROR_COLOURS,
+        "grey": NOT_LOCALIZED_COLOUR,
+    }
     try:
         view["overlay"] = map_overlay(shown["map_path"])
-    except Exception as exc:  # noqa: BLE001 - the imagery is optional: the points and tables still show
+    except Exception as exc:
         view["overlay_error"] = str(exc) or type(exc).__name__
     if shown.get("db"):
         tiles = tile_footprints(shown["db"])
@@ -243,9 +277,11 @@ def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, t
             view["tiles"] = {"label": f"tiles (zoom {shown['zoom']:g}, overlap {shown['overlap']:g})", "polys": tiles}
     gallery_html = ""
     if gallery:
-        gallery_html = (f"<h3>Match visualisations — {html.escape(_label(shown, fields))}</h3>"
-                        f"<p class=hint>Query (left) against the chosen tile (right); inlier matches green. "
-                        f"Click to enlarge.</p><div class=gallery>{''.join(gallery)}</div>")
+        gallery_html = (
+            f"<h3>Match visualisations — {html.escape(_label(shown, fields))}</h3>"
+            f"<p class=hint>Query (left) against the chosen tile (right); inlier matches green. "
+            f"Click to enlarge.</p><div class=gallery>{''.join(gallery)}</div>"
+        )
     return view, gallery_html
 
 
@@ -267,13 +303,26 @@ def _runs_html(runs: list[dict]) -> str:
         f"<td class=num>{r.get('cpu_count')}</td><td class=lab>{e(str(r.get('torch_version')))}</td>"
         f"<td class=lab>{e(str(r.get('device')))}</td><td class=lab>{e(str(r.get('started_at')))}</td>"
         f"<td class=lab>{e(str(r.get('finished_at') or '–'))}</td><td class=lab>{e(str(r.get('status')))}</td></tr>"
-        for r in runs)
-    return ("<table class=runs><thead><tr><th>run</th><th>host</th><th>CPUs</th><th>torch</th><th>device</th>"
-            f"<th>started (UTC)</th><th>finished</th><th>status</th></tr></thead><tbody>{rows}</tbody></table>")
+        for r in runs
+    )
+    return (
+        "<table class=runs><thead><tr><th>run</th><th>host</th><th>CPUs</th><th>torch</th><th>device</th>"
+        f"<th>started (UTC)</th><th>finished</th><th>status</th></tr></thead><tbody>{rows}</tbody></table>"
+    )
 
 
-def write_report(path, title: str, rows: list[dict], qrows_by_key: dict[str, list[dict]], tables, plots,
-                 runs: list[dict], thresholds=(), description: str = "", files: dict | None = None) -> Path:
+def write_report(
+    path,
+    title: str,
+    rows: list[dict],
+    qrows_by_key: dict[str, list[dict]],
+    tables,
+    plots,
+    runs: list[dict],
+    thresholds=(),
+    description: str = "",
+    files: dict | None = None,
+) -> Path:
     """Write the page to ``path``. ``rows``: result rows (``ResultStore.results``) of the configurations to
     show; ``qrows_by_key``: config key -> per-query rows; ``tables``/``plots`` from tables.py/plots.py;
     ``files``: label -> path of side files (CSV, Markdown, LaTeX) linked relatively."""
@@ -290,10 +339,18 @@ def write_report(path, title: str, rows: list[dict], qrows_by_key: dict[str, lis
         anchor = f"ds{i}"
         toc.append(f"<a href='#{anchor}'>{e(dataset)}</a>")
         ts = "".join(t.html() for t in tables if getattr(t, "dataset", dataset) == dataset)
-        ps = "".join(f"<figure class=plot><img src='{png_data_uri(p.path)}' data-full='' alt='{e(p.title)}'>"
-                     f"<figcaption>{e(p.title)}</figcaption></figure>" for p in plots if p.dataset == dataset)
+        ps = "".join(
+            f"<figure class=plot><img src='{png_data_uri(p.path)}' data-full='' alt='{e(p.title)}'>"
+            f"<figcaption>{e(p.title)}</figcaption></figure>"
+            for p in plots
+            if p.dataset == dataset
+        )
         n_q = max((r.get("n_queries") or 0) for r in rs)
-        note = f"<p class=warn>map imagery unavailable: {e(view.get('overlay_error', ''))}</p>" if view.get("overlay_error") else ""
+        note = (
+            f"<p class=warn>map imagery unavailable: {e(view.get('overlay_error', ''))}</p>"
+            if view.get("overlay_error")
+            else ""
+        )
         sections.append(
             f"<section id={anchor}><h2>{e(dataset)}</h2>"
             f"<p class=sub>map <code>{e(rs[0]['map'])}</code> · {n_q} queries · {len(rs)} configurations</p>"
@@ -301,15 +358,20 @@ def write_report(path, title: str, rows: list[dict], qrows_by_key: dict[str, lis
             f"joined by a line, coloured by error; grey rings: not localized. Click a point for details.</p>{note}"
             f"<label class=picker>configuration <select id=map{i}-pick></select></label>"
             f"<div class=map id=map{i}></div>"
-            f"{gallery}<h3>Tables</h3>{ts}<h3>Plots</h3><div class=plots>{ps}</div></section>")
+            f"{gallery}<h3>Tables</h3>{ts}<h3>Plots</h3><div class=plots>{ps}</div></section>"
+        )
     links = " · ".join(f"<a href='{e(str(p))}'>{e(k)}</a>" for k, p in (files or {}).items())
     data = json.dumps(_finite(views), allow_nan=False, default=str).replace("</", "<\\/")
     page = TEMPLATE.read_text(encoding="utf-8")
     subs = {
-        "__TITLE__": e(title), "__DESCRIPTION__": e(description),
+        "__TITLE__": e(title),
+        "__DESCRIPTION__": e(description),
         "__GENERATED__": e(f"{datetime.now():%Y-%m-%d %H:%M} · {len(rows)} configurations"),
-        "__TOC__": " · ".join(toc), "__FILES__": links, "__RUNS__": _runs_html(runs),
-        "__SECTIONS__": "\n".join(sections)}
+        "__TOC__": " · ".join(toc),
+        "__FILES__": links,
+        "__RUNS__": _runs_html(runs),
+        "__SECTIONS__": "\n".join(sections),
+    }
     for k, v in subs.items():
         page = page.replace(k, v)
     # code last: it must not be searched for placeholders

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from aeroloc.bench.experiment import Config, Experiment, expand, load_experiment
 from aeroloc.bench.store import ResultStore
@@ -20,8 +20,9 @@ from aeroloc.core.errors import AerolocError
 RunConfig = Callable[[Config, Path], dict]
 
 
-def run_experiment(path, resume: bool = True, report_only: bool = False, run_config: RunConfig | None = None,
-                   progress: bool = True) -> Path:
+def run_experiment(
+    path, resume: bool = True, report_only: bool = False, run_config: RunConfig | None = None, progress: bool = True
+) -> Path:
     """Run (or resume) the sweep of experiment file ``path`` and return the HTML report's path.
 
     ``run_config(config, cache_dir) -> dict`` defaults to :func:`aeroloc.bench.pipeline.run_config`; configurations
@@ -38,8 +39,9 @@ def run_experiment(path, resume: bool = True, report_only: bool = False, run_con
         return write_outputs(exp, configs, store, run_id)
 
 
-def sweep(exp: Experiment, configs: list[Config], store: ResultStore, run_config: RunConfig, resume: bool,
-          progress: bool) -> str:
+def sweep(
+    exp: Experiment, configs: list[Config], store: ResultStore, run_config: RunConfig, resume: bool, progress: bool
+) -> str:
     from tqdm import tqdm
 
     todo = [c for c in configs if not (resume and store.done(c.key()))]
@@ -48,8 +50,14 @@ def sweep(exp: Experiment, configs: list[Config], store: ResultStore, run_config
     if progress and skipped:
         print(f"{exp.name}: {skipped} of {len(configs)} configurations already in {store.path}, {len(todo)} to run")
     status, current = "failed", None
-    bar = tqdm(total=len(todo), desc=exp.name, unit="config", disable=not progress, dynamic_ncols=True,
-               bar_format="{n_fmt}/{total_fmt} configs [{elapsed} elapsed, {remaining} left] {desc}")
+    bar = tqdm(
+        total=len(todo),
+        desc=exp.name,
+        unit="config",
+        disable=not progress,
+        dynamic_ncols=True,
+        bar_format="{n_fmt}/{total_fmt} configs [{elapsed} elapsed, {remaining} left] {desc}",
+    )
     try:
         exp.cache.mkdir(parents=True, exist_ok=True)
         for current in todo:
@@ -79,8 +87,10 @@ def write_outputs(exp: Experiment, configs: list[Config], store: ResultStore, ru
 
     rows = store.results(keys=[c.key() for c in configs])
     if not rows:
-        raise AerolocError(f"{exp.file}: no results stored in {store.path} yet; run 'aeroloc bench {exp.file}' "
-                           f"without --report-only first")
+        raise AerolocError(
+            f"{exp.file}: no results stored in {store.path} yet; run 'aeroloc bench {exp.file}' "
+            f"without --report-only first"
+        )
     out = exp.output
     qrows = {r["config_key"]: store.query_rows(r["run_id"], r["config_key"]) for r in rows}
     errors = {k: [q["error_m"] for q in qs] for k, qs in qrows.items()}
@@ -92,10 +102,23 @@ def write_outputs(exp: Experiment, configs: list[Config], store: ResultStore, ru
     run_ids = {r["run_id"] for r in rows} | ({run_id} if run_id else set())
     runs = [r for r in store.runs() if r["run_id"] in run_ids]
     name = f"report-{run_id}.html" if run_id else "report.html"
-    report = write_report(out / name, exp.name, rows, qrows, tables, plots, runs, exp.thresholds_m,
-                          exp.description or f"experiment file {exp.file}",
-                          files={"results.csv": csv_path.name, "tables.md": "tables.md", "tables.tex": "tables.tex",
-                                 "results.sqlite": store.path.name})
+    report = write_report(
+        out / name,
+        exp.name,
+        rows,
+        qrows,
+        tables,
+        plots,
+        runs,
+        exp.thresholds_m,
+        exp.description or f"experiment file {exp.file}",
+        files={
+            "results.csv": csv_path.name,
+            "tables.md": "tables.md",
+            "tables.tex": "tables.tex",
+            "results.sqlite": store.path.name,
+        },
+    )
     if report.name != "report.html":
         shutil.copyfile(report, out / "report.html")
     return report

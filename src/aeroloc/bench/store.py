@@ -16,7 +16,6 @@ an interrupted sweep resume where it stopped.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -25,7 +24,7 @@ import re
 import secrets
 import socket
 import sqlite3
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from aeroloc.core.errors import AerolocError
@@ -33,10 +32,34 @@ from aeroloc.core.io import write_csv_atomic
 
 DB_NAME = "results.sqlite"
 
-CONFIG_COLUMNS = ["experiment", "map", "map_path", "tile_m", "queries", "queries_path", "method", "reranker", "zoom",
-                  "overlap", "top_n", "top_k", "device"]
-QUERY_COLUMNS = ["name", "true_lat", "true_lon", "est_lat", "est_lon", "error_m", "status", "inliers", "top_tiles",
-                 "vpr_rank", "match_image"]
+CONFIG_COLUMNS = [
+    "experiment",
+    "map",
+    "map_path",
+    "tile_m",
+    "queries",
+    "queries_path",
+    "method",
+    "reranker",
+    "zoom",
+    "overlap",
+    "top_n",
+    "top_k",
+    "device",
+]
+QUERY_COLUMNS = [
+    "name",
+    "true_lat",
+    "true_lon",
+    "est_lat",
+    "est_lon",
+    "error_m",
+    "status",
+    "inliers",
+    "top_tiles",
+    "vpr_rank",
+    "match_image",
+]
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -65,7 +88,7 @@ def column_name(key: str) -> str:
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 def _finite_or_none(v):
@@ -85,8 +108,13 @@ def machine_info() -> dict:
         except PackageNotFoundError:
             return None
 
-    return {"hostname": socket.gethostname(), "cpu_count": os.cpu_count(), "torch_version": ver("torch"),
-            "python_version": platform.python_version(), "aeroloc_version": ver("aeroloc")}
+    return {
+        "hostname": socket.gethostname(),
+        "cpu_count": os.cpu_count(),
+        "torch_version": ver("torch"),
+        "python_version": platform.python_version(),
+        "aeroloc_version": ver("aeroloc"),
+    }
 
 
 class ResultStore:
@@ -120,8 +148,21 @@ class ResultStore:
         with self.db:
             self.db.execute(
                 "INSERT INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
-                (run_id, experiment, str(experiment_file), info["hostname"], info["cpu_count"], info["torch_version"],
-                 device, info["python_version"], info["aeroloc_version"], _now(), None, "running"))
+                (
+                    run_id,
+                    experiment,
+                    str(experiment_file),
+                    info["hostname"],
+                    info["cpu_count"],
+                    info["torch_version"],
+                    device,
+                    info["python_version"],
+                    info["aeroloc_version"],
+                    _now(),
+                    None,
+                    "running",
+                ),
+            )
         return run_id
 
     def finish_run(self, run_id: str, status: str = "finished") -> None:
@@ -146,15 +187,29 @@ class ResultStore:
         extra = {k: v for k, v in output.items() if k not in ("metrics", "timing", "memory", "rows")}
         cfg = config.as_dict() if hasattr(config, "as_dict") else dict(config)
         values = {
-            "run_id": run_id, "config_key": config.key(), "experiment": cfg["experiment"], "map": cfg["map_name"],
-            "map_path": cfg["map_path"], "tile_m": cfg["tile_m"], "queries": cfg["queries_name"],
-            "queries_path": cfg["queries_path"], "method": cfg["method"], "reranker": cfg["reranker"],
-            "zoom": cfg["zoom"], "overlap": cfg["overlap"], "top_n": cfg["top_n"], "top_k": cfg["top_k"],
-            "device": cfg["device"], "n_tiles": output.get("n_tiles"),
-            "n_queries": output.get("n_queries", metrics.get("n_queries")), "created_at": _now(),
-            "metrics_json": json.dumps(metrics, default=str), "timing_json": json.dumps(timing, default=str),
+            "run_id": run_id,
+            "config_key": config.key(),
+            "experiment": cfg["experiment"],
+            "map": cfg["map_name"],
+            "map_path": cfg["map_path"],
+            "tile_m": cfg["tile_m"],
+            "queries": cfg["queries_name"],
+            "queries_path": cfg["queries_path"],
+            "method": cfg["method"],
+            "reranker": cfg["reranker"],
+            "zoom": cfg["zoom"],
+            "overlap": cfg["overlap"],
+            "top_n": cfg["top_n"],
+            "top_k": cfg["top_k"],
+            "device": cfg["device"],
+            "n_tiles": output.get("n_tiles"),
+            "n_queries": output.get("n_queries", metrics.get("n_queries")),
+            "created_at": _now(),
+            "metrics_json": json.dumps(metrics, default=str),
+            "timing_json": json.dumps(timing, default=str),
             "memory_json": json.dumps(memory, default=str),
-            "extra_json": json.dumps({"config": cfg, **extra}, default=str)}
+            "extra_json": json.dumps({"config": cfg, **extra}, default=str),
+        }
         for src in (metrics, timing, memory):
             for k, v in src.items():
                 col = column_name(k)
@@ -167,14 +222,19 @@ class ResultStore:
                     self.db.execute(f'ALTER TABLE results ADD COLUMN "{col}" REAL')
                     self._columns.add(col)
             names = ",".join(f'"{c}"' for c in values)
-            self.db.execute(f"INSERT OR REPLACE INTO results ({names}) VALUES ({','.join('?' * len(values))})",
-                            list(values.values()))
+            self.db.execute(
+                f"INSERT OR REPLACE INTO results ({names}) VALUES ({','.join('?' * len(values))})",
+                list(values.values()),
+            )
             self.db.execute("DELETE FROM query_results WHERE run_id=? AND config_key=?", (run_id, values["config_key"]))
             self.db.executemany(
                 f"INSERT INTO query_results (run_id, config_key, {','.join(QUERY_COLUMNS)}) "
                 f"VALUES ({','.join('?' * (2 + len(QUERY_COLUMNS)))})",
-                [(run_id, values["config_key"], *(_query_value(r, c) for c in QUERY_COLUMNS))
-                 for r in output.get("rows") or []])
+                [
+                    (run_id, values["config_key"], *(_query_value(r, c) for c in QUERY_COLUMNS))
+                    for r in output.get("rows") or []
+                ],
+            )
 
     def results(self, keys=None, experiment: str | None = None, latest: bool = True) -> list[dict]:
         """Result rows as flat dicts: configuration fields, ``run_id``, ``config_key``, ``n_tiles``, ``n_queries``
@@ -199,7 +259,8 @@ class ResultStore:
     def query_rows(self, run_id: str, config_key: str) -> list[dict]:
         cur = self.db.execute(
             f"SELECT {','.join(QUERY_COLUMNS)} FROM query_results WHERE run_id=? AND config_key=? ORDER BY name",
-            (run_id, config_key))
+            (run_id, config_key),
+        )
         return [dict(r) for r in cur]
 
     def export_csv(self, path=None, experiment: str | None = None) -> Path:

@@ -19,10 +19,22 @@ from dataclasses import dataclass, field
 
 RECALL_NS = (1, 5, 10)
 STAGES = ("descriptor", "search", "local_features", "rerank", "align")
-STAGE_NAMES = {"descriptor": "descriptor", "search": "search", "local_features": "local features",
-               "rerank": "re-rank", "align": "align"}
-LABEL_FIELDS = (("method", "Method"), ("reranker", "Re-ranker"), ("zoom", "Zoom"), ("overlap", "Overlap"),
-                ("top_n", "N"), ("top_k", "K"), ("tile_m", "Tile m"))
+STAGE_NAMES = {
+    "descriptor": "descriptor",
+    "search": "search",
+    "local_features": "local features",
+    "rerank": "re-rank",
+    "align": "align",
+}
+LABEL_FIELDS = (
+    ("method", "Method"),
+    ("reranker", "Re-ranker"),
+    ("zoom", "Zoom"),
+    ("overlap", "Overlap"),
+    ("top_n", "N"),
+    ("top_k", "K"),
+    ("tile_m", "Tile m"),
+)
 
 
 @dataclass
@@ -65,14 +77,18 @@ class Table:
             return self.labels + self.columns
         out, i = list(self.labels), 0
         for name, span in self.groups:
-            out += [f"{name} {c}".strip() for c in self.columns[i:i + span]]
+            out += [f"{name} {c}".strip() for c in self.columns[i : i + span]]
             i += span
         return out
 
     def markdown(self) -> str:
         heads = self.headers(flat=True)
-        lines = [f"**{self.title}**", "", "| " + " | ".join(heads) + " |",
-                 "|" + "|".join(":---" if i < len(self.labels) else "---:" for i in range(len(heads))) + "|"]
+        lines = [
+            f"**{self.title}**",
+            "",
+            "| " + " | ".join(heads) + " |",
+            "|" + "|".join(":---" if i < len(self.labels) else "---:" for i in range(len(heads))) + "|",
+        ]
         for row in self.rows:
             lines.append("| " + " | ".join(f"**{c.text}**" if c.bold else c.text for c in row) + " |")
         if self.note:
@@ -81,8 +97,13 @@ class Table:
 
     def latex(self) -> str:
         spec = "l" * len(self.labels) + "r" * len(self.columns)
-        out = ["\\begin{table}[t]", "\\centering", f"\\caption{{{_tex(self.title)}}}", f"\\begin{{tabular}}{{{spec}}}",
-               "\\toprule"]
+        out = [
+            "\\begin{table}[t]",
+            "\\centering",
+            f"\\caption{{{_tex(self.title)}}}",
+            f"\\begin{{tabular}}{{{spec}}}",
+            "\\toprule",
+        ]
         if self.groups:
             cells, rules, col = [""] * len(self.labels), [], len(self.labels) + 1
             for name, span in self.groups:
@@ -105,8 +126,12 @@ class Table:
         e = html.escape
         head = []
         if self.groups:
-            head.append("<tr>" + "".join(f"<th rowspan=2>{e(h)}</th>" for h in self.labels)
-                        + "".join(f"<th colspan={s} class=grp>{e(n)}</th>" for n, s in self.groups) + "</tr>")
+            head.append(
+                "<tr>"
+                + "".join(f"<th rowspan=2>{e(h)}</th>" for h in self.labels)
+                + "".join(f"<th colspan={s} class=grp>{e(n)}</th>" for n, s in self.groups)
+                + "</tr>"
+            )
             head.append("<tr>" + "".join(f"<th>{e(c)}</th>" for c in self.columns) + "</tr>")
         else:
             head.append("<tr>" + "".join(f"<th>{e(h)}</th>" for h in self.labels + self.columns) + "</tr>")
@@ -119,14 +144,30 @@ class Table:
                 tds.append(f"<td class={cls}>{txt}</td>")
             body.append("<tr>" + "".join(tds) + "</tr>")
         note = f"<p class=note>{e(self.note)}</p>" if self.note else ""
-        return (f"<figure class=table id=table-{e(self.key)}><figcaption>{e(self.title)}</figcaption>"
-                f"<table><thead>{''.join(head)}</thead><tbody>{''.join(body)}</tbody></table>{note}</figure>")
+        return (
+            f"<figure class=table id=table-{e(self.key)}><figcaption>{e(self.title)}</figcaption>"
+            f"<table><thead>{''.join(head)}</thead><tbody>{''.join(body)}</tbody></table>{note}</figure>"
+        )
 
 
-_TEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{",
-        "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "–": "--", "—": "---", "×": r"$\times$",
-        "·": r"$\cdot$",
-        "≤": r"$\leq$", "Δ": r"$\Delta$"}
+_TEX = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "$": r"\$",
+    "#": r"\#",
+    "_": r"\_",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+    "–": "--",
+    "—": "---",
+    "×": r"$\times$",
+    "·": r"$\cdot$",
+    "≤": r"$\leq$",
+    "Δ": r"$\Delta$",
+}
 
 
 def _tex(s: str) -> str:
@@ -168,8 +209,10 @@ def label_value(row: dict, f: str) -> str:
 
 def describe(row: dict, fields) -> str:
     """Short label of a configuration: method and re-ranker by name, other fields as "zoom 1", "N 20"."""
-    return " · ".join(label_value(row, f) if f in ("method", "reranker") else f"{name.lower()} {label_value(row, f)}"
-                      for f, name in fields)
+    return " · ".join(
+        label_value(row, f) if f in ("method", "reranker") else f"{name.lower()} {label_value(row, f)}"
+        for f, name in fields
+    )
 
 
 def varying(rows: list[dict], exclude=(), always=("method",)) -> list[tuple[str, str]]:
@@ -220,15 +263,24 @@ def sweep_table(rows: list[dict], axis: str, dataset: str) -> Table | None:
                 cells.append(c)
         for n in RECALL_NS:
             mark_best(value_cells[n])
-        scored = [(tuple(value_cells[n][i].number if value_cells[n][i].number is not None else -1 for n in RECALL_NS),
-                   v) for i, v in enumerate(values)]
+        scored = [
+            (tuple(value_cells[n][i].number if value_cells[n][i].number is not None else -1 for n in RECALL_NS), v)
+            for i, v in enumerate(values)
+        ]
         best = max(scored, key=lambda s: s[0]) if scored else None
         cells.append(Cell(f"{best[1]:g}" if best and best[0][0] >= 0 else None))
         out_rows.append(cells)
     groups_hdr = [(f"{name.lower()} {v:g}", len(RECALL_NS)) for v in values] + [("", 1)]
     columns = [f"R@{n}" for _ in values for n in RECALL_NS] + [f"best {name.lower()}"]
-    return Table(axis, f"VPR Recall (%) by {name.lower()} — {dataset}", [n for _, n in labels], columns, out_rows,
-                 groups_hdr, note=f"Retrieval only (before re-ranking). Bold: best {name.lower()} per row and R@N.")
+    return Table(
+        axis,
+        f"VPR Recall (%) by {name.lower()} — {dataset}",
+        [n for _, n in labels],
+        columns,
+        out_rows,
+        groups_hdr,
+        note=f"Retrieval only (before re-ranking). Bold: best {name.lower()} per row and R@N.",
+    )
 
 
 def rerank_table(rows: list[dict], dataset: str) -> Table | None:
@@ -252,10 +304,16 @@ def rerank_table(rows: list[dict], dataset: str) -> Table | None:
             recalls += [before, after]
         mark_best(recalls)
         out_rows.append(cells)
-    return Table("rerank", f"VPR Recall@1 (%) before and after re-ranking — {dataset}", [n for _, n in labels],
-                 ["R@1 before", "R@1 after", "ms/query"] * len(ns), out_rows, [(f"N = {n}", 3) for n in ns],
-                 note="before = retrieval ranking, after = re-ranked by verified inliers; ms/query = local features "
-                      "+ matching. Bold: best R@1 of the row.")
+    return Table(
+        "rerank",
+        f"VPR Recall@1 (%) before and after re-ranking — {dataset}",
+        [n for _, n in labels],
+        ["R@1 before", "R@1 after", "ms/query"] * len(ns),
+        out_rows,
+        [(f"N = {n}", 3) for n in ns],
+        note="before = retrieval ranking, after = re-ranked by verified inliers; ms/query = local features "
+        "+ matching. Bold: best R@1 of the row.",
+    )
 
 
 def georef_table(rows: list[dict], dataset: str, thresholds=None) -> Table | None:
@@ -268,16 +326,25 @@ def georef_table(rows: list[dict], dataset: str, thresholds=None) -> Table | Non
     columns = [f"≤{t:g} m" for t in thresholds] + ["median m", "p90 m", "not loc. %"]
     for r in rows:
         vals = [Cell(pct(r.get(f"georef_recall@{t:g}m"))) for t in thresholds]
-        vals += [Cell(_num(r.get("median_error_m"))), Cell(_num(r.get("p90_error_m"))),
-                 Cell(pct(r.get("not_localized")))]
+        vals += [
+            Cell(_num(r.get("median_error_m"))),
+            Cell(_num(r.get("p90_error_m"))),
+            Cell(pct(r.get("not_localized"))),
+        ]
         out_rows.append([Cell(label_value(r, f)) for f, _ in labels] + vals)
         cols.append(vals)
     for j in range(len(columns)):
         mark_best([c[j] for c in cols], higher=j < len(thresholds))
-    return Table("georef", f"Georeference Recall (%) and error — {dataset}", [n for _, n in labels], columns, out_rows,
-                 [("Georeference Recall", len(thresholds)), ("error", 3)],
-                 note="Recall = estimate within d metres of the truth (not localized = miss); errors over localized "
-                      "queries. Re-ranker none = centre of the top tile. Bold: best per column.")
+    return Table(
+        "georef",
+        f"Georeference Recall (%) and error — {dataset}",
+        [n for _, n in labels],
+        columns,
+        out_rows,
+        [("Georeference Recall", len(thresholds)), ("error", 3)],
+        note="Recall = estimate within d metres of the truth (not localized = miss); errors over localized "
+        "queries. Re-ranker none = centre of the top tile. Bold: best per column.",
+    )
 
 
 def time_table(rows: list[dict], dataset: str) -> Table | None:
@@ -301,9 +368,15 @@ def time_table(rows: list[dict], dataset: str) -> Table | None:
         cols.append(vals)
     for j in range(len(columns)):
         mark_best([c[j] for c in cols], higher=False)
-    return Table("time", f"Time per stage (ms per query) — {dataset}", [n for _, n in labels], columns, out_rows,
-                 note="Same clock (perf_counter) for every stage; total s = the queries' totals summed (database "
-                      "build excluded). Bold: fastest per column.")
+    return Table(
+        "time",
+        f"Time per stage (ms per query) — {dataset}",
+        [n for _, n in labels],
+        columns,
+        out_rows,
+        note="Same clock (perf_counter) for every stage; total s = the queries' totals summed (database "
+        "build excluded). Bold: fastest per column.",
+    )
 
 
 def memory_table(rows: list[dict], dataset: str) -> Table | None:
@@ -318,24 +391,39 @@ def memory_table(rows: list[dict], dataset: str) -> Table | None:
         seen.add(ident)
         kb = lambda v: None if _num(v) is None else _num(v) / 1024  # noqa: E731
         local = kb(r.get("local_bytes_per_tile")) if r.get("reranker") else None
-        vals = [Cell(kb(r.get("descriptor_bytes_per_tile"))), Cell(local), Cell(kb(r.get("index_bytes")), 0),
-                Cell(_num(r.get("peak_rss_mb")), 0)]
+        vals = [
+            Cell(kb(r.get("descriptor_bytes_per_tile"))),
+            Cell(local),
+            Cell(kb(r.get("index_bytes")), 0),
+            Cell(_num(r.get("peak_rss_mb")), 0),
+        ]
         out_rows.append([Cell(label_value(r, f)) for f, _ in labels] + [Cell(r.get("n_tiles"), 0)] + vals)
         cols.append(vals)
     for j in range(4):
         mark_best([c[j] for c in cols], higher=False)
-    return Table("memory", f"Memory — {dataset}", [n for _, n in labels],
-                 ["tiles", "descriptor KB/tile", "local KB/tile", "index KB", "peak RSS MB"], out_rows,
-                 note="Bytes on disk; peak RSS is the benchmark process's maximum so far (it only grows within a run). "
-                      "Bold: smallest per column.")
+    return Table(
+        "memory",
+        f"Memory — {dataset}",
+        [n for _, n in labels],
+        ["tiles", "descriptor KB/tile", "local KB/tile", "index KB", "peak RSS MB"],
+        out_rows,
+        note="Bytes on disk; peak RSS is the benchmark process's maximum so far (it only grows within a run). "
+        "Bold: smallest per column.",
+    )
 
 
 def build_tables(rows: list[dict]) -> list[Table]:
     """Every layout that the rows can fill, per query set, in the paper's order."""
     out = []
     for dataset, rs in by_dataset(rows).items():
-        for t in (sweep_table(rs, "zoom", dataset), sweep_table(rs, "overlap", dataset), rerank_table(rs, dataset),
-                  georef_table(rs, dataset), time_table(rs, dataset), memory_table(rs, dataset)):
+        for t in (
+            sweep_table(rs, "zoom", dataset),
+            sweep_table(rs, "overlap", dataset),
+            rerank_table(rs, dataset),
+            georef_table(rs, dataset),
+            time_table(rs, dataset),
+            memory_table(rs, dataset),
+        ):
             if t is not None:
                 t.dataset = dataset
                 out.append(t)

@@ -10,8 +10,9 @@ def add_arguments(p):
 
     add_map_grid_arguments(p)
     p.add_argument("--out", required=True, help="database folder")
-    p.add_argument("--method", default=DEFAULT_METHOD, help="retrieval method (default %(default)s; "
-                   "see 'aeroloc methods')")
+    p.add_argument(
+        "--method", default=DEFAULT_METHOD, help="retrieval method (default %(default)s; see 'aeroloc methods')"
+    )
     p.add_argument("--weights", help="explicit weights file for the method")
     p.add_argument("--local", help="also precompute local features of this re-ranker (e.g. xfeat-lighterglue)")
     p.add_argument("--index", default="Flat", help="faiss factory string (default Flat; e.g. HNSW32, IVF1024,PQ32)")
@@ -22,11 +23,11 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.retrieval.database import Database, build_global
     from aeroloc.core.device import pick_device
-    from aeroloc.retrieval.models import method_class
-    from aeroloc.matching.registry import rerank_conf
     from aeroloc.maps.tiling import write_tiles
+    from aeroloc.matching.registry import rerank_conf
+    from aeroloc.retrieval.database import Database, build_global
+    from aeroloc.retrieval.models import method_class
 
     method_class(args.method)  # unknown names fail now, not after the tiles (or the descriptors) are built
     if args.local:
@@ -35,18 +36,23 @@ def run(args) -> int:
     info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
     print(summary(info, args.out))
     db = Database(args.out)
-    rep = build_global(db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index,
-                       args.half)
+    rep = build_global(
+        db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index, args.half
+    )
     if rep["cached"]:
         print(f"descriptors {args.method}: cached ({rep['dim']}-d, {rep['bytes_per_tile'] / 1024:.1f} KB/tile)")
     else:
-        print(f"descriptors {args.method}: {rep['n_tiles']} tiles, {rep['dim']}-d, {rep['tiles_per_s']:.1f} tiles/s, "
-              f"fit {rep['fit_s']:.1f} s, index {rep['index_s'] * 1000:.0f} ms, "
-              f"{rep['bytes_per_tile'] / 1024:.1f} KB/tile")
+        print(
+            f"descriptors {args.method}: {rep['n_tiles']} tiles, {rep['dim']}-d, {rep['tiles_per_s']:.1f} tiles/s, "
+            f"fit {rep['fit_s']:.1f} s, index {rep['index_s'] * 1000:.0f} ms, "
+            f"{rep['bytes_per_tile'] / 1024:.1f} KB/tile"
+        )
     if args.local:
         from aeroloc.matching.features import build_local
 
         lrep = build_local(db, args.local, device)
-        print(f"local features {args.local}: {lrep['n_tiles']} tiles, {lrep['bytes_per_tile'] / 1024:.1f} KB/tile"
-              + (" (cached)" if lrep.get("cached") else f", {lrep['tiles_per_s']:.1f} tiles/s"))
+        print(
+            f"local features {args.local}: {lrep['n_tiles']} tiles, {lrep['bytes_per_tile'] / 1024:.1f} KB/tile"
+            + (" (cached)" if lrep.get("cached") else f", {lrep['tiles_per_s']:.1f} tiles/s")
+        )
     return 0

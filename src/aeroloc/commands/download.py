@@ -13,22 +13,31 @@ class _RefuseKey(argparse.Action):
     """``--key VALUE`` would put the key in shell history and process lists: refuse it (without echoing it)."""
 
     def __call__(self, parser, namespace, values, option_string=None):
-        parser.error(f"{option_string}: keys are not taken from the command line; set $AEROLOC_TILE_KEY "
-                     "(XYZ {key}) or $AEROLOC_GOOGLE_KEY (google), or use --key-file FILE")
+        parser.error(
+            f"{option_string}: keys are not taken from the command line; set $AEROLOC_TILE_KEY "
+            "(XYZ {key}) or $AEROLOC_GOOGLE_KEY (google), or use --key-file FILE"
+        )
 
 
 def add_arguments(p):
     p.allow_abbrev = False  # so '--key SECRET' is never read as '--key-file SECRET'
     area = p.add_mutually_exclusive_group(required=True)
-    area.add_argument("--bbox", nargs=4, type=float, metavar=("SOUTH", "WEST", "NORTH", "EAST"),
-                      help="area in WGS84 degrees")
-    area.add_argument("--around", metavar="QUERIES.csv",
-                      help="cover the positions of a query file (CSV name,lat,lon or the seed's queries.txt)")
+    area.add_argument(
+        "--bbox", nargs=4, type=float, metavar=("SOUTH", "WEST", "NORTH", "EAST"), help="area in WGS84 degrees"
+    )
+    area.add_argument(
+        "--around",
+        metavar="QUERIES.csv",
+        help="cover the positions of a query file (CSV name,lat,lon or the seed's queries.txt)",
+    )
     p.add_argument("--margin-m", type=float, default=200.0, help="margin around --around positions (default 200 m)")
     p.add_argument("--zoom", type=int, required=True, help="Web Mercator zoom level (e.g. 17 ≈ 1.2 m/px at 0°)")
-    p.add_argument("--provider", required=True,
-                   help="XYZ URL template ({z} {x} {y}, optional {s} {q} {r} {key}), an xyzservices name "
-                        "(e.g. Esri.WorldImagery) or 'google' (Static Maps API, scale 2, logo strip cropped)")
+    p.add_argument(
+        "--provider",
+        required=True,
+        help="XYZ URL template ({z} {x} {y}, optional {s} {q} {r} {key}), an xyzservices name "
+        "(e.g. Esri.WorldImagery) or 'google' (Static Maps API, scale 2, logo strip cropped)",
+    )
     p.add_argument("--out", required=True, help="map folder to write (or resume)")
     p.add_argument("--key-file", help="file holding the API key (else $AEROLOC_TILE_KEY / $AEROLOC_GOOGLE_KEY)")
     p.add_argument("--key", "--api-key", action=_RefuseKey, help=argparse.SUPPRESS)
@@ -45,8 +54,8 @@ def add_arguments(p):
 def run(args) -> int:
     import logging
 
-    from aeroloc.maps.download import RetryPolicy, download_map
     from aeroloc.core.errors import AerolocError
+    from aeroloc.maps.download import RetryPolicy, download_map
     from aeroloc.maps.providers import bbox_around, read_key, resolve_provider
 
     if args.around:
@@ -62,9 +71,18 @@ def run(args) -> int:
     key = read_key(provider, args.key_file)
     logging.getLogger("urllib3").setLevel(logging.WARNING)  # its debug lines carry full URLs
     policy = RetryPolicy(attempts=args.retries, read_timeout_s=args.timeout)
-    report, manifest = download_map(args.out, bbox, args.zoom, provider, key=key, workers=args.workers,
-                                    rate=args.rate, policy=policy, progress=not args.no_progress,
-                                    max_tiles=args.max_tiles)
+    report, manifest = download_map(
+        args.out,
+        bbox,
+        args.zoom,
+        provider,
+        key=key,
+        workers=args.workers,
+        rate=args.rate,
+        policy=policy,
+        progress=not args.no_progress,
+        max_tiles=args.max_tiles,
+    )
     s, w, n, e = manifest["bounds"]
     print(f"{provider.name} zoom {args.zoom}: bounds S {s:.6f} W {w:.6f} N {n:.6f} E {e:.6f} -> {args.out}")
     print(report.summary())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 # --refine-window: an accepted match whose query reaches 15 % of a tile side beyond the tile is re-matched on the map
 # (NAIP dev, 1280 m tiles: 57 windows for 120 queries; Georef@10 m 0.82 -> 0.85, median error 4.7 -> 3.9 m)
 REFINE_OUTSIDE = 0.15
@@ -14,37 +13,55 @@ def add_arguments(p):
     p.add_argument("db", help="database folder built by 'aeroloc build'")
     p.add_argument("queries", help="queries.csv / queries.txt / folder of photos with EXIF GPS")
     p.add_argument("--top-n", type=int, default=20, help="candidates retrieved (default %(default)s)")
-    p.add_argument("--rerank", default=DEFAULT_RERANKER,
-                   help=f"re-ranker: {', '.join(sorted(RERANKERS))} or none (default %(default)s)")
+    p.add_argument(
+        "--rerank",
+        default=DEFAULT_RERANKER,
+        help=f"re-ranker: {', '.join(sorted(RERANKERS))} or none (default %(default)s)",
+    )
     p.add_argument("--top-k", type=int, default=1, help="tiles kept after re-ranking (default %(default)s)")
     p.add_argument("--method", help="retrieval method if the database holds several")
-    p.add_argument("--rotations", type=int, default=1, metavar="K",
-                   help="retrieve with the query at K headings (360/K steps), for queries of unknown heading "
-                        "(default %(default)s: upright only)")
-    p.add_argument("--north-up", action="store_true",
-                   help="queries are north-up within about ±45° (compass/gimbal yaw, satellite imagery): skip the "
-                        "re-ranker's 90° rotation search")
-    p.add_argument("--refine-window", action="store_true",
-                   help="re-match queries that reach beyond their best tile against the map window they cover: "
-                        "more inliers and metres of accuracy, ~0.3 s more for those queries")
-    p.add_argument("--query-gsd", type=float, metavar="M",
-                   help="ground size of a query pixel in metres (satellite metadata, or height over ground x pixel "
-                        "angle): first match the query's structure densely over the map (aeroloc.matching.dense), at "
-                        "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
-                        "(~2 s); local features only when that finds no distinct match")
+    p.add_argument(
+        "--rotations",
+        type=int,
+        default=1,
+        metavar="K",
+        help="retrieve with the query at K headings (360/K steps), for queries of unknown heading "
+        "(default %(default)s: upright only)",
+    )
+    p.add_argument(
+        "--north-up",
+        action="store_true",
+        help="queries are north-up within about ±45° (compass/gimbal yaw, satellite imagery): skip the "
+        "re-ranker's 90° rotation search",
+    )
+    p.add_argument(
+        "--refine-window",
+        action="store_true",
+        help="re-match queries that reach beyond their best tile against the map window they cover: "
+        "more inliers and metres of accuracy, ~0.3 s more for those queries",
+    )
+    p.add_argument(
+        "--query-gsd",
+        type=float,
+        metavar="M",
+        help="ground size of a query pixel in metres (satellite metadata, or height over ground x pixel "
+        "angle): first match the query's structure densely over the map (aeroloc.matching.dense), at "
+        "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
+        "(~2 s); local features only when that finds no distinct match",
+    )
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
 
 
 def run(args) -> int:
-    from aeroloc.retrieval.database import Database
-    from aeroloc.localization.dense_stage import check_query_gsd
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
     from aeroloc.core.queries import load_queries
+    from aeroloc.localization.dense_stage import check_query_gsd
     from aeroloc.localization.localizer import heading_conf, localize_queries
     from aeroloc.matching.registry import rerank_conf
+    from aeroloc.retrieval.database import Database
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")
@@ -58,9 +75,21 @@ def run(args) -> int:
     db = Database(args.db)
     queries = load_queries(args.queries)
     conf = {"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None
-    rows = localize_queries(db, queries, args.out, args.top_n, args.top_k, args.method, rerank,
-                            pick_device(args.device), rerank_conf=conf, save_matches=args.save_matches,
-                            rotations=args.rotations, north_up=args.north_up, query_gsd=args.query_gsd)
+    rows = localize_queries(
+        db,
+        queries,
+        args.out,
+        args.top_n,
+        args.top_k,
+        args.method,
+        rerank,
+        pick_device(args.device),
+        rerank_conf=conf,
+        save_matches=args.save_matches,
+        rotations=args.rotations,
+        north_up=args.north_up,
+        query_gsd=args.query_gsd,
+    )
     n_loc = sum(1 for r in rows if r["lat"])
     print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
     return 0

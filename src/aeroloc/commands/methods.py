@@ -9,9 +9,9 @@ def add_arguments(p):
 
 def run(args) -> int:
     from aeroloc.core.errors import AerolocError
-    from aeroloc.retrieval.models import DEFAULT_METHOD, METHODS, method_class
     from aeroloc.core.weights import resolve_weights
     from aeroloc.matching.registry import DEFAULT_RERANKER, RERANKERS
+    from aeroloc.retrieval.models import DEFAULT_METHOD, METHODS, method_class
 
     print("retrieval methods (--method):")
     for name in METHODS:
@@ -28,6 +28,8 @@ def run(args) -> int:
         print(line)
     print("re-rankers (--rerank):")
     for name, conf in RERANKERS.items():
-        print(f"  {name}{' (default)' if name == DEFAULT_RERANKER else ''}: "
-              f"{conf['extractor']['name']} + {conf['matcher']['name']}")
+        print(
+            f"  {name}{' (default)' if name == DEFAULT_RERANKER else ''}: "
+            f"{conf['extractor']['name']} + {conf['matcher']['name']}"
+        )
     return 0

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import csv
-import os
 from aeroloc.core.io import write_csv_atomic
-from pathlib import Path
 
 
 def add_arguments(p):
@@ -13,9 +10,14 @@ def add_arguments(p):
     p.add_argument("queries", help="queries.csv / queries.txt / folder of photos")
     p.add_argument("--top-n", type=int, default=10)
     p.add_argument("--method", help="method to use if the database holds several (default: last built)")
-    p.add_argument("--rotations", type=int, default=1, metavar="K",
-                   help="search the query at K headings (360/K steps) and keep each tile's best score; for queries "
-                        "of unknown heading (default %(default)s: upright only; 4 or 8 cost K descriptors)")
+    p.add_argument(
+        "--rotations",
+        type=int,
+        default=1,
+        metavar="K",
+        help="search the query at K headings (360/K steps) and keep each tile's best score; for queries "
+        "of unknown heading (default %(default)s: upright only; 4 or 8 cost K descriptors)",
+    )
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--device", default="auto")
 
@@ -23,11 +25,11 @@ def add_arguments(p):
 def run(args) -> int:
     from tqdm import tqdm
 
-    from aeroloc.retrieval.database import Database
     from aeroloc.core.device import pick_device
-    from aeroloc.core.images import read_image
     from aeroloc.core.errors import AerolocError
+    from aeroloc.core.images import read_image
     from aeroloc.core.queries import load_queries
+    from aeroloc.retrieval.database import Database
     from aeroloc.retrieval.retriever import Retriever
 
     if args.top_n < 1:
@@ -43,7 +45,7 @@ def run(args) -> int:
         # queries are searched in batches: an exact scan of many tiles is shared by the whole batch
         if not batch:
             return
-        for (q, desc, t_desc), r in zip(batch, retriever.rank([d for _, d, _ in batch], args.top_n)):
+        for (q, _desc, t_desc), r in zip(batch, retriever.rank([d for _, d, _ in batch], args.top_n)):
             r.times_ms["descriptor"] = t_desc
             rows.append(_row(db, q, r))
         batch.clear()
@@ -63,9 +65,15 @@ SEARCH_BATCH = 256  # queries per Faiss search
 
 def _row(db, q, r) -> dict:
     lat, lon = db.by_id[r.tile_ids[0]].centre_latlon
-    return {"name": q.name, "lat": f"{lat:.8f}", "lon": f"{lon:.8f}", "top_tiles": ";".join(r.tile_ids),
-            "scores": ";".join(f"{s:.4f}" for s in r.scores),
-            "descriptor_ms": f"{r.times_ms['descriptor']:.1f}", "search_ms": f"{r.times_ms['search']:.3f}"}
+    return {
+        "name": q.name,
+        "lat": f"{lat:.8f}",
+        "lon": f"{lon:.8f}",
+        "top_tiles": ";".join(r.tile_ids),
+        "scores": ";".join(f"{s:.4f}" for s in r.scores),
+        "descriptor_ms": f"{r.times_ms['descriptor']:.1f}",
+        "search_ms": f"{r.times_ms['search']:.3f}",
+    }
 
 
 def write_rows(path, rows: list[dict]) -> None:

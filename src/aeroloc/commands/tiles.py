@@ -27,7 +27,9 @@ def summary(info: dict, out) -> str:
     g, m = info["grid"], info["map"]
     side_m = g["side_px"] * m["resolution_m"]
     cached = " (cached)" if info.get("cached") else f" in {info.get('build_s', 0):.2f} s"
-    return (f"{info['n_tiles']} tiles ({g['n_rows']} rows x {g['n_cols']} cols) of {g['side_px']} px "
-            f"(~{side_m:.0f} m), step {g['step_px']} px, zoom {g['zoom']:g}, overlap {g['overlap']:g}; "
-            f"map {m['width']}x{m['height']} px at {m['resolution_m']:.2f} m/px fully covered; "
-            f"{info.get('image_bytes', 0) / 1e6:.1f} MB of images{cached} -> {out}")
+    return (
+        f"{info['n_tiles']} tiles ({g['n_rows']} rows x {g['n_cols']} cols) of {g['side_px']} px "
+        f"(~{side_m:.0f} m), step {g['step_px']} px, zoom {g['zoom']:g}, overlap {g['overlap']:g}; "
+        f"map {m['width']}x{m['height']} px at {m['resolution_m']:.2f} m/px fully covered; "
+        f"{info.get('image_bytes', 0) / 1e6:.1f} MB of images{cached} -> {out}"
+    )

@@ -52,8 +52,10 @@ def load_queries(path, require_images: bool = True) -> list[Query]:
     if require_images:
         for q in queries:
             if not q.path.is_file():
-                raise AerolocError(f"{path}: image for query '{q.name}' not found (looked beside it and in "
-                                   f"{', '.join(d for d in IMAGE_DIRS if d != '.')}/)")
+                raise AerolocError(
+                    f"{path}: image for query '{q.name}' not found (looked beside it and in "
+                    f"{', '.join(d for d in IMAGE_DIRS if d != '.')}/)"
+                )
     return queries
 
 
@@ -92,9 +94,17 @@ def _from_csv(path: Path) -> list[Query]:
         lat, lon = _float(r["lat"], "lat", where), _float(r["lon"], "lon", where)
         _check_latlon(lat, lon, where)
         extra = {k: v for k, v in r.items() if k not in {"name", "lat", "lon", "heading_deg", "alt_m"}}
-        out.append(Query(r["name"], folder / r["name"], math.nan if lat is None else lat,
-                         math.nan if lon is None else lon, _float(r.get("heading_deg"), "heading_deg", where),
-                         _float(r.get("alt_m"), "alt_m", where), extra))
+        out.append(
+            Query(
+                r["name"],
+                folder / r["name"],
+                math.nan if lat is None else lat,
+                math.nan if lon is None else lon,
+                _float(r.get("heading_deg"), "heading_deg", where),
+                _float(r.get("alt_m"), "alt_m", where),
+                extra,
+            )
+        )
     return out
 
 

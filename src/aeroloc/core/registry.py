@@ -15,7 +15,8 @@ def lazy_class(table: dict[str, str], package: str, kind: str, name: str):
         mod = importlib.import_module(f"{package}.{module}")
     except ModuleNotFoundError as exc:
         if exc.name == f"{package}.{module}":
-            raise AerolocError(f"{kind} '{name}' is not available in this build "
-                               f"(module {package}.{module} is missing)") from None
+            raise AerolocError(
+                f"{kind} '{name}' is not available in this build (module {package}.{module} is missing)"
+            ) from None
         raise
     return getattr(mod, cls)

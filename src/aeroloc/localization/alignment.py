@@ -31,8 +31,15 @@ def project(H: np.ndarray, x: float, y: float) -> tuple[float, float] | None:
     return float(xy[0, 0]), float(xy[0, 1])
 
 
-def align(H: np.ndarray | None, inliers: int, query_size: tuple[int, int], tile: Tile, map_size: tuple[int, int],
-          min_inliers: int, max_outside: float = 0.5) -> Alignment:
+def align(
+    H: np.ndarray | None,
+    inliers: int,
+    query_size: tuple[int, int],
+    tile: Tile,
+    map_size: tuple[int, int],
+    min_inliers: int,
+    max_outside: float = 0.5,
+) -> Alignment:
     """``H`` maps query pixels (pixel-edge origin) to ``tile`` pixels; ``query_size`` = (w, h).
 
     Rejections: too few inliers, an insane homography (see aeroloc.matching.verify), the centre projected more than

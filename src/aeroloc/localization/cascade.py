@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aeroloc.core.errors import AerolocError
 from aeroloc.matching.features import extract, to_original
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
+
 
 @dataclass
 class Candidate:
@@ -93,8 +93,10 @@ class Reranker:
 
         missing = [t for t in tile_ids if t not in self._have]
         if missing:
-            new = {t: extract(self.extractor, read_image(self.db.folder / self.db.by_id[t].path),
-                              self.conf["tile_side"]) for t in missing}
+            new = {
+                t: extract(self.extractor, read_image(self.db.folder / self.db.by_id[t].path), self.conf["tile_side"])
+                for t in missing
+            }
             self.store.write_many(new)
             self._have |= set(missing)
         with self.store.reader() as r:
@@ -107,8 +109,10 @@ class Reranker:
         if not self.conf["screen"] or c.inliers < 0:
             return None  # screen-only candidate (or no screen at all): min_inliers alone decides
         if c.screen < self.conf["min_screen"] and c.inliers < self.conf["confident_inliers"]:
-            return (f"screen found {c.screen} inliers < {self.conf['min_screen']} and the matcher {c.inliers} "
-                    f"< {self.conf['confident_inliers']}")
+            return (
+                f"screen found {c.screen} inliers < {self.conf['min_screen']} and the matcher {c.inliers} "
+                f"< {self.conf['confident_inliers']}"
+            )
         return None
 
     def _verify(self, qf: dict, tf: dict, matches: np.ndarray, geometry: str = "homography"):
@@ -163,7 +167,7 @@ class Reranker:
                 best.update(rot=k, score=c.screen)
             return c.screen >= c_["early_exit"]
 
-        probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]):]
+        probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]) :]
         for k in rots:
             if any(screen(c, k) for c in probe):
                 return n
@@ -212,6 +216,10 @@ class Reranker:
                 break
         order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))
         total = time.perf_counter() - t0
-        return Reranked(order[: top_k] if top_k else order,
-                        {"local_features": t_extract * 1000, "rerank": (total - t_extract) * 1000},
-                        n_screened, n_verified, query)
+        return Reranked(
+            order[:top_k] if top_k else order,
+            {"local_features": t_extract * 1000, "rerank": (total - t_extract) * 1000},
+            n_screened,
+            n_verified,
+            query,
+        )

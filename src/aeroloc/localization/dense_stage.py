@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aeroloc.core.frames import resize
-from aeroloc.matching.dense import DenseMatch, DenseRegion
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.frames import resize
 from aeroloc.maps.tiling import Tile
+from aeroloc.matching.dense import DenseMatch, DenseRegion
 
 
 def check_query_gsd(query_gsd) -> float | None:
@@ -48,8 +48,10 @@ class DenseResult:
         return corners @ rot.T + [self.col, self.row]
 
     def status(self) -> str:
-        return f"localized (dense: score {self.match.score:.2f}, ratio {self.match.ratio:.2f}, " \
-               f"turned {self.match.angle:+.1f}°, scale {self.match.scale:.2f})"
+        return (
+            f"localized (dense: score {self.match.score:.2f}, ratio {self.match.ratio:.2f}, "
+            f"turned {self.match.angle:+.1f}°, scale {self.match.scale:.2f})"
+        )
 
 
 class DenseMapLocator:
@@ -65,12 +67,13 @@ class DenseMapLocator:
         self._whole: DenseRegion | None = None
 
     def _fits(self, w: int, h: int) -> bool:
-        return w * h * self.map_factor ** 2 <= self.max_region_px
+        return w * h * self.map_factor**2 <= self.max_region_px
 
     def _region(self, col: int, row: int, w: int, h: int) -> DenseRegion:
         rgb, valid = self.map.read(col, row, w, h)
-        return DenseRegion(resize(rgb, self.map_factor), resize(valid.astype(np.uint8), self.map_factor, True) > 0,
-                           self.conf)
+        return DenseRegion(
+            resize(rgb, self.map_factor), resize(valid.astype(np.uint8), self.map_factor, True) > 0, self.conf
+        )
 
     def region(self, tiles: list[Tile]) -> tuple[DenseRegion, int, int] | None:
         """The region to search and its top-left map pixel: the whole map (described once) when it fits, else the
@@ -84,8 +87,11 @@ class DenseMapLocator:
         for t in tiles:
             c0, r0 = max(0, t.col), max(0, t.row)
             c1, r1 = min(m.width, t.col + t.width), min(m.height, t.row + t.height)
-            nb = (c0, r0, c1, r1) if box is None else \
-                (min(box[0], c0), min(box[1], r0), max(box[2], c1), max(box[3], r1))
+            nb = (
+                (c0, r0, c1, r1)
+                if box is None
+                else (min(box[0], c0), min(box[1], r0), max(box[2], c1), max(box[3], r1))
+            )
             if not self._fits(nb[2] - nb[0], nb[3] - nb[1]):
                 break
             box = nb

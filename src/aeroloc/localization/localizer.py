@@ -16,15 +16,24 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.localization.alignment import Alignment, align
-from aeroloc.retrieval.database import Database
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
+from aeroloc.localization.alignment import Alignment, align
+from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import QUERY_SCALE, Retriever, check_rotations
 
 STAGES = ("descriptor", "search", "local_features", "rerank", "align")
-COLUMNS = ["name", "lat", "lon", "status", "inliers", "top_tiles", "retrieved_tiles",
-           *(f"{s}_ms" for s in STAGES), "total_ms"]
+COLUMNS = [
+    "name",
+    "lat",
+    "lon",
+    "status",
+    "inliers",
+    "top_tiles",
+    "retrieved_tiles",
+    *(f"{s}_ms" for s in STAGES),
+    "total_ms",
+]
 
 
 @dataclass
@@ -43,9 +52,15 @@ class Localization:
     def row(self) -> dict:
         """The results-CSV row, all strings: a fresh, resumed or cached run returns equal rows."""
         loc = np.isfinite(self.lat)
-        r = {"name": self.name, "lat": f"{self.lat:.8f}" if loc else "", "lon": f"{self.lon:.8f}" if loc else "",
-             "status": self.status, "inliers": str(self.inliers), "top_tiles": ";".join(self.top_tiles),
-             "retrieved_tiles": ";".join(self.retrieved)}
+        r = {
+            "name": self.name,
+            "lat": f"{self.lat:.8f}" if loc else "",
+            "lon": f"{self.lon:.8f}" if loc else "",
+            "status": self.status,
+            "inliers": str(self.inliers),
+            "top_tiles": ";".join(self.top_tiles),
+            "retrieved_tiles": ";".join(self.retrieved),
+        }
         for s in STAGES:
             r[f"{s}_ms"] = f"{self.times_ms.get(s, 0.0):.2f}"
         r["total_ms"] = f"{sum(self.times_ms.get(s, 0.0) for s in STAGES):.2f}"
@@ -53,11 +68,19 @@ class Localization:
 
 
 class Localizer:
-    def __init__(self, db: Database, method: str | None = None, rerank: str | None = "xfeat-lighterglue",
-                 device="cpu", rerank_conf: dict | None = None, rotations: int = 1, query_gsd: float | None = None,
-                 dense_conf: dict | None = None):
-        from aeroloc.localization.dense_stage import check_query_gsd
+    def __init__(
+        self,
+        db: Database,
+        method: str | None = None,
+        rerank: str | None = "xfeat-lighterglue",
+        device="cpu",
+        rerank_conf: dict | None = None,
+        rotations: int = 1,
+        query_gsd: float | None = None,
+        dense_conf: dict | None = None,
+    ):
         from aeroloc.localization.cascade import Reranker
+        from aeroloc.localization.dense_stage import check_query_gsd
 
         self.db = db
         self.retriever = Retriever(db, method, device, rotations)  # rotations: query headings searched
@@ -65,7 +88,9 @@ class Localizer:
         m = db.info["map"]
         self.map_size = (int(m["width"]), int(m["height"]))
         self.query_gsd = check_query_gsd(query_gsd)  # metres per query pixel: turns the dense stage on
-        self.dense_conf = dense_conf  # aeroloc.matching.dense settings (default headings ±15°: see dense.heading_angles)
+        self.dense_conf = (
+            dense_conf  # aeroloc.matching.dense settings (default headings ±15°: see dense.heading_angles)
+        )
 
     def __call__(self, name: str, image: np.ndarray, top_n: int = 20, top_k: int = 1) -> Localization:
         from aeroloc.core.device import single_threaded_blas
@@ -84,7 +109,7 @@ class Localizer:
             if d is not None:
                 out.times_ms["align"] = dense_ms
                 out.lat, out.lon, out.status, out.dense = d.lat, d.lon, d.status(), d
-                out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[:top_k or None]
+                out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[: top_k or None]
                 return out
         if self.reranker is None:  # retrieval only: best tile centre, no alignment
             out.top_tiles = r.tile_ids[:top_k] if top_k else r.tile_ids
@@ -98,8 +123,14 @@ class Localizer:
         out.best = best
         t0 = time.perf_counter()
         conf = self.reranker.conf
-        a = align(best.H, best.score, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id],
-                  self.map_size, conf["min_inliers"])
+        a = align(
+            best.H,
+            best.score,
+            (image.shape[1], image.shape[0]),
+            self.db.by_id[best.tile_id],
+            self.map_size,
+            conf["min_inliers"],
+        )
         doubt = self.reranker.doubt(best) if a.localized else None
         if doubt:
             a = Alignment(f"not localized: {doubt}")
@@ -117,8 +148,10 @@ class Localizer:
             return False
         if not a.localized:
             return conf["refine_min"] is not None and conf["refine_min"] <= best.score < conf["min_inliers"]
-        return conf["refine_outside"] is not None and \
-            beyond_tile(best.H, query_size, self.db.by_id[best.tile_id]) > conf["refine_outside"]
+        return (
+            conf["refine_outside"] is not None
+            and beyond_tile(best.H, query_size, self.db.by_id[best.tile_id]) > conf["refine_outside"]
+        )
 
     def _realign(self, image: np.ndarray, best, qf) -> Alignment | None:
         """The best match re-matched against the map window its transform says the query covers (aeroloc.localization.window):
@@ -132,9 +165,8 @@ class Localizer:
         window = query_window(self.map, tile, best.H, (image.shape[1], image.shape[0]))
         if window is None:
             return None
-        n, H, n_matches, vis = self.reranker.match_window(qf, window, tile)
-        a = align(H, n, (image.shape[1], image.shape[0]), window.tile, self.map_size,
-                  self.reranker.conf["min_inliers"])
+        n, H, n_matches, _vis = self.reranker.match_window(qf, window, tile)
+        a = align(H, n, (image.shape[1], image.shape[0]), window.tile, self.map_size, self.reranker.conf["min_inliers"])
         if not a.localized or n <= best.score:
             return None
         best.inliers, best.H, best.n_matches, best.matches = n, H, n_matches, None
@@ -143,8 +175,10 @@ class Localizer:
     def _tiles_around(self, col: float, row: float, retrieved: list[str]) -> list[str]:
         """The re-ranked list for a dense position: every tile containing it (nearest centre first, retrieved or
         not), then the other retrieved tiles in retrieval order."""
-        inside = sorted((t for t in self.db.tiles if t.col <= col <= t.col + t.width and t.row <= row <= t.row + t.height),
-                        key=lambda t: (t.col + t.width / 2 - col) ** 2 + (t.row + t.height / 2 - row) ** 2)
+        inside = sorted(
+            (t for t in self.db.tiles if t.col <= col <= t.col + t.width and t.row <= row <= t.row + t.height),
+            key=lambda t: (t.col + t.width / 2 - col) ** 2 + (t.row + t.height / 2 - row) ** 2,
+        )
         ids = [t.id for t in inside]
         taken = set(ids)
         return ids + [t for t in retrieved if t not in taken]
@@ -174,8 +208,10 @@ def heading_conf(rerank_conf: dict | None, north_up: bool, rotations: int) -> di
     if not north_up:
         return rerank_conf
     if rotations != 1:
-        raise AerolocError(f"--north-up and --rotations > 1 contradict each other: north-up queries need no rotation "
-                           f"search, but rotations={rotations} was asked for")
+        raise AerolocError(
+            f"--north-up and --rotations > 1 contradict each other: north-up queries need no rotation "
+            f"search, but rotations={rotations} was asked for"
+        )
     return {**(rerank_conf or {}), "rotations": [0]}
 
 
@@ -183,19 +219,33 @@ def _config_signature(**kw) -> str:
     return json.dumps(kw, sort_keys=True, default=str)
 
 
-def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=None, rerank="xfeat-lighterglue",
-                     device="cpu", rerank_conf=None, save_matches=None, progress=True, rotations=1,
-                     north_up=False, query_gsd=None, dense_conf=None) -> list[dict]:
+def localize_queries(
+    db: Database,
+    queries,
+    out_csv,
+    top_n=20,
+    top_k=1,
+    method=None,
+    rerank="xfeat-lighterglue",
+    device="cpu",
+    rerank_conf=None,
+    save_matches=None,
+    progress=True,
+    rotations=1,
+    north_up=False,
+    query_gsd=None,
+    dense_conf=None,
+) -> list[dict]:
     """Localize every query, streaming rows to ``out_csv`` (resumable). Returns the rows.
 
     ``rotations`` > 1 retrieves with the query at that many headings; ``north_up`` skips the re-ranker's 90°
     rotation search (see :func:`heading_conf`); ``query_gsd`` (metres per query pixel) first tries the dense
     structural stage (aeroloc.matching.dense: headings around north when ``north_up``, else all), local features only when
     it finds no distinct match."""
-    from aeroloc.matching.dense import heading_angles
-    from aeroloc.localization.dense_stage import check_query_gsd
-
     from tqdm import tqdm
+
+    from aeroloc.localization.dense_stage import check_query_gsd
+    from aeroloc.matching.dense import heading_angles
 
     rotations = check_rotations(rotations)  # before any file is touched
     query_gsd = check_query_gsd(query_gsd)
@@ -207,14 +257,20 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
     sig_path = out_csv.with_name(out_csv.name + ".config")
     from aeroloc.matching.registry import rerank_conf as full_conf
 
-    sig = _config_signature(db=str(db.folder.resolve()), top_n=top_n, top_k=top_k, method=method, rerank=rerank,
-                            rerank_conf=full_conf(rerank, rerank_conf) if rerank else None,
-                            global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
-                            queries=[q.name for q in queries],
-                            query_scale=QUERY_SCALE,
-                            # rotations only when searched, so the signature of an upright run stays as it was
-                            **({"rotations": rotations} if rotations != 1 else {}),
-                            **({"query_gsd": query_gsd, "dense": dense_conf} if query_gsd is not None else {}))
+    sig = _config_signature(
+        db=str(db.folder.resolve()),
+        top_n=top_n,
+        top_k=top_k,
+        method=method,
+        rerank=rerank,
+        rerank_conf=full_conf(rerank, rerank_conf) if rerank else None,
+        global_=db.meta.get("global", {}).get(method or db.meta.get("default_method")),
+        queries=[q.name for q in queries],
+        query_scale=QUERY_SCALE,
+        # rotations only when searched, so the signature of an upright run stays as it was
+        **({"rotations": rotations} if rotations != 1 else {}),
+        **({"query_gsd": query_gsd, "dense": dense_conf} if query_gsd is not None else {}),
+    )
     done_sig = out_csv.with_name(out_csv.name + ".done")
     if out_csv.is_file() and done_sig.is_file() and done_sig.read_text() == sig:
         with open(out_csv, newline="") as f:
@@ -223,7 +279,7 @@ def localize_queries(db: Database, queries, out_csv, top_n=20, top_k=1, method=N
     rows = []
     if part.is_file() and sig_path.is_file() and sig_path.read_text() == sig:
         with open(part, newline="") as f:
-            rows = [r for r in csv.DictReader(f)]
+            rows = list(csv.DictReader(f))
     done = {r["name"] for r in rows}
     sig_path.write_text(sig)
     localizer = Localizer(db, method, rerank, device, rerank_conf, rotations, query_gsd, dense_conf)
@@ -276,8 +332,9 @@ def save_dense_image(path: Path, image: np.ndarray, dense, res: Localization) ->
     cv2.polylines(b, [poly], True, (0, 220, 0), 2, cv2.LINE_AA)
     cv2.line(b, tuple(poly[0]), tuple(poly[1]), (255, 255, 0), 3, cv2.LINE_AA)  # the query's top edge
     canvas = np.concatenate([a, b], 1)
-    cv2.putText(canvas, f"{res.name}: {res.status}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 0), 2,
-                cv2.LINE_AA)
+    cv2.putText(
+        canvas, f"{res.name}: {res.status}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 0), 2, cv2.LINE_AA
+    )
     write_image(path, canvas, quality=85)
 
 

@@ -28,7 +28,9 @@ def open_map_for_refine(path):
     try:
         return open_map(path)
     except AerolocError as exc:
-        warnings.warn(f"{exc}; weak matches are not re-matched on the map window (aeroloc.localization.window)", stacklevel=2)
+        warnings.warn(
+            f"{exc}; weak matches are not re-matched on the map window (aeroloc.localization.window)", stacklevel=2
+        )
         return None
 
 
@@ -57,8 +59,9 @@ def beyond_tile(H: np.ndarray, query_size: tuple[int, int], tile: Tile) -> float
     return float(out.max())
 
 
-def query_window(map_, tile: Tile, H: np.ndarray, query_size: tuple[int, int], margin: float = 0.2,
-                 max_sides: float = 3.0) -> Window | None:
+def query_window(
+    map_, tile: Tile, H: np.ndarray, query_size: tuple[int, int], margin: float = 0.2, max_sides: float = 3.0
+) -> Window | None:
     """The map window covering the query's corners projected through ``H`` (query px -> ``tile`` px), grown by
     ``margin`` of its size on every side and clipped to the map; None when the projection is unusable (behind
     the horizon, empty after clipping, or larger than ``max_sides`` tile sides)."""

@@ -25,17 +25,16 @@ import random
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import requests
 
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.io import atomic_write_bytes
-from aeroloc.maps.providers import (GoogleStaticProvider, XYZProvider, check_bbox, google_grid, redact,
-                               xyz_grid)
+from aeroloc.maps.providers import GoogleStaticProvider, XYZProvider, check_bbox, google_grid, redact, xyz_grid
 
 log = logging.getLogger("aeroloc.maps.download")
 
@@ -120,7 +119,7 @@ def parse_retry_after(value: str | None, now: float | None = None) -> float | No
     if when is None:
         return None
     if when.tzinfo is None:
-        when = when.replace(tzinfo=_dt.timezone.utc)
+        when = when.replace(tzinfo=_dt.UTC)
     now = time.time() if now is None else now
     return max(0.0, when.timestamp() - now)
 
@@ -144,8 +143,9 @@ def decode_image(data: bytes, expect_size: tuple[int, int] | None = None):
     if ext is None:
         raise InvalidImage(f"unsupported image format {im.format}", retry=False)
     if expect_size and im.size != tuple(expect_size):
-        raise InvalidImage(f"image is {im.size[0]}x{im.size[1]} px, expected {expect_size[0]}x{expect_size[1]}",
-                           retry=False)
+        raise InvalidImage(
+            f"image is {im.size[0]}x{im.size[1]} px, expected {expect_size[0]}x{expect_size[1]}", retry=False
+        )
     return im, ext
 
 
@@ -174,8 +174,7 @@ def fetch_once(url: str, policy: RetryPolicy, secret: str | None = None) -> byte
     """One GET; the body if it is a 200, else TileError describing what happened (without the URL)."""
     try:
         start = time.monotonic()
-        with _thread_session().get(url, timeout=(policy.connect_timeout_s, policy.read_timeout_s),
-                                   stream=True) as resp:
+        with _thread_session().get(url, timeout=(policy.connect_timeout_s, policy.read_timeout_s), stream=True) as resp:
             status = resp.status_code
             if status != 200:
                 raise _status_error(status, resp)
@@ -202,8 +201,7 @@ def fetch_once(url: str, policy: RetryPolicy, secret: str | None = None) -> byte
 def _status_error(status: int, resp) -> TileError:
     reason = f"HTTP {status}"
     if status in (401, 403):
-        return TileError(f"{reason}: access refused (check the key or the provider's terms)", retry=False,
-                         fatal=True)
+        return TileError(f"{reason}: access refused (check the key or the provider's terms)", retry=False, fatal=True)
     if status == 429 or status == 503:
         return TileError(reason, retry_after=parse_retry_after(resp.headers.get("Retry-After")))
     if status in (408, 425) or status >= 500:
@@ -254,19 +252,25 @@ class DownloadReport:
         return not self.failed and self.aborted is None and self.downloaded + self.skipped == self.expected
 
     def summary(self, limit: int = 10) -> str:
-        lines = [f"{self.downloaded} tiles downloaded, {self.skipped} already present, {len(self.failed)} missing "
-                 f"of {self.expected} in {self.seconds:.1f} s ({self.tiles_per_s:.1f} tiles/s, "
-                 f"{self.bytes / 1e6:.1f} MB, {self.retries} retries"
-                 + (f": {', '.join(f'{k} x{v}' for k, v in self.retry_reasons.most_common(5))}" if self.retries else "")
-                 + ")"]
+        lines = [
+            f"{self.downloaded} tiles downloaded, {self.skipped} already present, {len(self.failed)} missing "
+            f"of {self.expected} in {self.seconds:.1f} s ({self.tiles_per_s:.1f} tiles/s, "
+            f"{self.bytes / 1e6:.1f} MB, {self.retries} retries"
+            + (f": {', '.join(f'{k} x{v}' for k, v in self.retry_reasons.most_common(5))}" if self.retries else "")
+            + ")"
+        ]
         if self.aborted:
             lines.append(f"stopped early: {self.aborted}")
         if self.failed:
             by_reason = Counter(self.failed.values())
             lines.append("missing tiles by reason: " + "; ".join(f"{r} ({n})" for r, n in by_reason.most_common()))
             shown = list(self.failed)[:limit]
-            lines.append("missing: " + ", ".join(shown) + (" …" if len(self.failed) > limit else "")
-                         + " — run the same command again to fetch only these")
+            lines.append(
+                "missing: "
+                + ", ".join(shown)
+                + (" …" if len(self.failed) > limit else "")
+                + " — run the same command again to fetch only these"
+            )
         return "\n".join(lines)
 
 
@@ -281,8 +285,15 @@ def _save(job: TileJob, data: bytes, im, ext: str) -> Path:
     return dest
 
 
-def fetch_tile(job: TileJob, policy: RetryPolicy, bucket: TokenBucket, secret: str | None,
-               stop: threading.Event, report: DownloadReport, lock: threading.Lock) -> Path | None:
+def fetch_tile(
+    job: TileJob,
+    policy: RetryPolicy,
+    bucket: TokenBucket,
+    secret: str | None,
+    stop: threading.Event,
+    report: DownloadReport,
+    lock: threading.Lock,
+) -> Path | None:
     """Try one tile up to ``policy.attempts`` times; the saved path, or TileError with the last reason."""
     last: TileError | None = None
     for attempt in range(1, policy.attempts + 1):
@@ -295,8 +306,9 @@ def fetch_tile(job: TileJob, policy: RetryPolicy, bucket: TokenBucket, secret: s
             try:
                 path = _save(job, data, im, ext)
             except OSError as exc:
-                raise TileError(f"cannot write {job.stem.parent}: {exc.strerror or exc}", retry=False,
-                                fatal=True) from None
+                raise TileError(
+                    f"cannot write {job.stem.parent}: {exc.strerror or exc}", retry=False, fatal=True
+                ) from None
             with lock:
                 report.bytes += len(data)
             return path
@@ -309,8 +321,14 @@ def fetch_tile(job: TileJob, policy: RetryPolicy, bucket: TokenBucket, secret: s
             with lock:
                 report.retries += 1
                 report.retry_reasons[exc.reason.split(":")[0]] += 1
-            log.debug("tile %s: %s (attempt %d/%d), retrying in %.2f s", job.label, exc.reason, attempt,
-                      policy.attempts, delay)
+            log.debug(
+                "tile %s: %s (attempt %d/%d), retrying in %.2f s",
+                job.label,
+                exc.reason,
+                attempt,
+                policy.attempts,
+                delay,
+            )
             policy.sleep(delay)
     assert last is not None
     if last.retry and last.reason != "not attempted (run stopped)":
@@ -331,9 +349,17 @@ def remove_partial_files(folder: Path) -> int:
     return n
 
 
-def download_tiles(jobs: list[TileJob], *, workers: int = 4, rate: float = 8.0, policy: RetryPolicy | None = None,
-                   secret: str | None = None, progress: bool = True, max_consecutive_failures: int = 50,
-                   bucket: TokenBucket | None = None) -> DownloadReport:
+def download_tiles(
+    jobs: list[TileJob],
+    *,
+    workers: int = 4,
+    rate: float = 8.0,
+    policy: RetryPolicy | None = None,
+    secret: str | None = None,
+    progress: bool = True,
+    max_consecutive_failures: int = 50,
+    bucket: TokenBucket | None = None,
+) -> DownloadReport:
     """Fetch every job not already on disk and valid. Ctrl-C (or any crash) stops cleanly: finished tiles stay,
     no partial file is left, and the next run resumes. A refusal (401/403) or an unwritable folder stops the
     run: ``report.fatal`` is set and the tiles not fetched are listed as failed."""
@@ -353,14 +379,21 @@ def download_tiles(jobs: list[TileJob], *, workers: int = 4, rate: float = 8.0, 
             p = job.existing()
             return p is not None and valid_file(p, job.final_size)
 
-        checks = tqdm(pool.map(present, jobs), total=len(jobs), unit="tile", desc="verify on disk", leave=False,
-                      disable=not progress)
+        checks = tqdm(
+            pool.map(present, jobs),
+            total=len(jobs),
+            unit="tile",
+            desc="verify on disk",
+            leave=False,
+            disable=not progress,
+        )
         pending = [job for job, ok in zip(jobs, checks) if not ok]
         report.skipped = len(jobs) - len(pending)
 
         # 2. fetch the rest
-        bar = tqdm(total=len(pending), unit="tile", desc="download", disable=not progress, dynamic_ncols=True,
-                   smoothing=0.1)
+        bar = tqdm(
+            total=len(pending), unit="tile", desc="download", disable=not progress, dynamic_ncols=True, smoothing=0.1
+        )
         consecutive = 0
         futures = {pool.submit(fetch_tile, job, policy, bucket, secret, stop, report, lock): job for job in pending}
         try:
@@ -379,8 +412,9 @@ def download_tiles(jobs: list[TileJob], *, workers: int = 4, rate: float = 8.0, 
                     elif exc.reason != "not attempted (run stopped)":
                         consecutive += 1
                         if consecutive >= max_consecutive_failures and not stop.is_set():
-                            report.aborted = (f"{consecutive} tiles in a row failed (last: {exc.reason}); "
-                                              "is the server reachable?")
+                            report.aborted = (
+                                f"{consecutive} tiles in a row failed (last: {exc.reason}); is the server reachable?"
+                            )
                             stop.set()
                 bar.update(1)
                 bar.set_postfix(missing=len(report.failed), retries=report.retries, refresh=False)
@@ -397,7 +431,7 @@ def download_tiles(jobs: list[TileJob], *, workers: int = 4, rate: float = 8.0, 
 
 # --- whole maps ----------------------------------------------------------------------------------------------
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat()
 
 
 def _write_json(path: Path, info: dict) -> None:
@@ -417,9 +451,11 @@ def _check_same_map(out: Path, plan: dict) -> None:
         raise AerolocError(f"{manifest}: not valid JSON; delete it or choose another --out folder") from None
     diff = [k for k in ("layout", "provider", "zoom", "x_range", "y_range", "grid") if old.get(k) != plan.get(k)]
     if diff:
-        raise AerolocError(f"{out}: already holds another download ("
-                           + ", ".join(f"{k} {old.get(k)!r} vs {plan.get(k)!r}" for k in diff)
-                           + "); choose another --out folder")
+        raise AerolocError(
+            f"{out}: already holds another download ("
+            + ", ".join(f"{k} {old.get(k)!r} vs {plan.get(k)!r}" for k in diff)
+            + "); choose another --out folder"
+        )
 
 
 @dataclass
@@ -430,9 +466,21 @@ class _Plan:
     prepare: Callable = lambda: None  # write layout files (map_metadata.txt) once the folder is checked
 
 
-def download_map(out, bbox, zoom: int, provider, *, key: str | None = None, workers: int = 4, rate: float = 8.0,
-                 policy: RetryPolicy | None = None, progress: bool = True, max_tiles: int = 50_000,
-                 bucket: TokenBucket | None = None, max_consecutive_failures: int = 50) -> tuple[DownloadReport, dict]:
+def download_map(
+    out,
+    bbox,
+    zoom: int,
+    provider,
+    *,
+    key: str | None = None,
+    workers: int = 4,
+    rate: float = 8.0,
+    policy: RetryPolicy | None = None,
+    progress: bool = True,
+    max_tiles: int = 50_000,
+    bucket: TokenBucket | None = None,
+    max_consecutive_failures: int = 50,
+) -> tuple[DownloadReport, dict]:
     """Download the tiles of ``provider`` covering ``bbox`` (south, west, north, east) at ``zoom`` into ``out``.
 
     Returns the report and the manifest written to ``out/manifest.json``; ``tiles_missing`` lists what is
@@ -450,14 +498,28 @@ def download_map(out, bbox, zoom: int, provider, *, key: str | None = None, work
     _check_same_map(out, plan.manifest)
     out.mkdir(parents=True, exist_ok=True)
     remove_partial_files(out)
-    manifest = {**plan.manifest, "bbox_requested": list(bbox), "created": _now(), "tiles_expected": len(plan.jobs),
-                "tiles_missing": None, "complete": False}
+    manifest = {
+        **plan.manifest,
+        "bbox_requested": list(bbox),
+        "created": _now(),
+        "tiles_expected": len(plan.jobs),
+        "tiles_missing": None,
+        "complete": False,
+    }
     _write_json(out / "manifest.json", manifest)  # first, so a killed run still describes its folder
     plan.prepare()
     report = None
     try:
-        report = download_tiles(plan.jobs, workers=workers, rate=rate, policy=policy, secret=key,
-                                progress=progress, bucket=bucket, max_consecutive_failures=max_consecutive_failures)
+        report = download_tiles(
+            plan.jobs,
+            workers=workers,
+            rate=rate,
+            policy=policy,
+            secret=key,
+            progress=progress,
+            bucket=bucket,
+            max_consecutive_failures=max_consecutive_failures,
+        )
     finally:
         if report is not None:
             missing = [j for j in plan.jobs if j.label in report.failed]
@@ -476,8 +538,10 @@ def download_map(out, bbox, zoom: int, provider, *, key: str | None = None, work
 
 def _check_count(n: int, zoom: int, max_tiles: int) -> None:
     if n > max_tiles:
-        raise AerolocError(f"{n} images at zoom {zoom} exceed --max-tiles {max_tiles}; lower the zoom, shrink "
-                           "the area or raise --max-tiles")
+        raise AerolocError(
+            f"{n} images at zoom {zoom} exceed --max-tiles {max_tiles}; lower the zoom, shrink "
+            "the area or raise --max-tiles"
+        )
 
 
 def _xyz_plan(out: Path, bbox, zoom: int, provider: XYZProvider, key, max_tiles: int) -> _Plan:
@@ -489,11 +553,29 @@ def _xyz_plan(out: Path, bbox, zoom: int, provider: XYZProvider, key, max_tiles:
     suffix = provider.suffix
     exts = (suffix,) if suffix else tuple(IMAGE_EXTS.values())
     transform = _keep_as(suffix) if suffix else None
-    jobs = [TileJob(f"{zoom}/{x}/{y}", provider.url(zoom, x, y, key), out / str(zoom) / str(x) / str(y), size, size,
-                    exts=exts, transform=transform) for x, y in grid.tiles()]
-    manifest = {"layout": "xyz", "zoom": zoom, "x_range": [grid.x0, grid.x1], "y_range": [grid.y0, grid.y1],
-                "tile_size": provider.tile_size, "ext": (suffix or ".png").lstrip("."), "provider": provider.name,
-                "attribution": provider.attribution, "bounds": list(grid.bounds())}
+    jobs = [
+        TileJob(
+            f"{zoom}/{x}/{y}",
+            provider.url(zoom, x, y, key),
+            out / str(zoom) / str(x) / str(y),
+            size,
+            size,
+            exts=exts,
+            transform=transform,
+        )
+        for x, y in grid.tiles()
+    ]
+    manifest = {
+        "layout": "xyz",
+        "zoom": zoom,
+        "x_range": [grid.x0, grid.x1],
+        "y_range": [grid.y0, grid.y1],
+        "tile_size": provider.tile_size,
+        "ext": (suffix or ".png").lstrip("."),
+        "provider": provider.name,
+        "attribution": provider.attribution,
+        "bounds": list(grid.bounds()),
+    }
     if not suffix:
         manifest["ext_note"] = "the template names no format: each file keeps the format served (png/jpg/webp)"
     return _Plan(manifest, jobs, lambda j: [int(v) for v in j.label.split("/")[1:]])
@@ -525,23 +607,61 @@ def _google_plan(out: Path, bbox, zoom: int, provider: GoogleStaticProvider, key
         return buf.getvalue(), ".png"
 
     cells = list(grid.cells())
-    jobs = [TileJob(c.filename, provider.url(c, zoom, key), out / Path(c.filename).stem, size, final,
-                    exts=(".png",), transform=crop_logo) for c in cells]
-    manifest = {"layout": "metadata", "zoom": zoom, "tile_size": [grid.tile_w, grid.tile_h], "ext": "png",
-                "grid": {"rows": grid.n_rows, "cols": grid.n_cols, "left_px": grid.left, "top_px": grid.top,
-                         "render_zoom": grid.render_zoom, "scale": grid.scale, "logo_crop_px": grid.crop_px},
-                "provider": provider.name, "attribution": provider.attribution, "bounds": list(grid.bounds()),
-                "metadata": "map_metadata.txt"}
+    jobs = [
+        TileJob(
+            c.filename,
+            provider.url(c, zoom, key),
+            out / Path(c.filename).stem,
+            size,
+            final,
+            exts=(".png",),
+            transform=crop_logo,
+        )
+        for c in cells
+    ]
+    manifest = {
+        "layout": "metadata",
+        "zoom": zoom,
+        "tile_size": [grid.tile_w, grid.tile_h],
+        "ext": "png",
+        "grid": {
+            "rows": grid.n_rows,
+            "cols": grid.n_cols,
+            "left_px": grid.left,
+            "top_px": grid.top,
+            "render_zoom": grid.render_zoom,
+            "scale": grid.scale,
+            "logo_crop_px": grid.crop_px,
+        },
+        "provider": provider.name,
+        "attribution": provider.attribution,
+        "bounds": list(grid.bounds()),
+        "metadata": "map_metadata.txt",
+    }
 
     def write_metadata():
         lines = ["filename top_left_lat top_left_lon bottom_right_lat bottom_right_lon"]
-        lines += [f"{c.filename} {c.corners[0]:.12f} {c.corners[1]:.12f} {c.corners[2]:.12f} {c.corners[3]:.12f}"
-                  for c in cells]
+        lines += [
+            f"{c.filename} {c.corners[0]:.12f} {c.corners[1]:.12f} {c.corners[2]:.12f} {c.corners[3]:.12f}"
+            for c in cells
+        ]
         atomic_write_bytes(out / "map_metadata.txt", ("\n".join(lines) + "\n").encode())
 
     return _Plan(manifest, jobs, lambda j: j.label, write_metadata)
 
 
-__all__ = ["RetryPolicy", "TokenBucket", "TileJob", "TileError", "InvalidImage", "DownloadReport", "decode_image",
-           "parse_retry_after", "fetch_once", "fetch_tile", "download_tiles", "download_map",
-           "remove_partial_files"]
+__all__ = [
+    "DownloadReport",
+    "InvalidImage",
+    "RetryPolicy",
+    "TileError",
+    "TileJob",
+    "TokenBucket",
+    "decode_image",
+    "download_map",
+    "download_tiles",
+    "fetch_once",
+    "fetch_tile",
+    "parse_retry_after",
+    "remove_partial_files",
+]

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 from pathlib import Path
 
 from aeroloc.core.errors import AerolocError
@@ -27,8 +26,10 @@ def _open_checked(src: Path):
         raise AerolocError(f"{src}: not a readable raster ({str(exc)[:120]})") from None
     if ds.crs is None:
         ds.close()
-        raise AerolocError(f"{src}: the raster has no coordinate reference system (georeference it first, "
-                           "e.g. gdal_translate -a_srs / gdalwarp)")
+        raise AerolocError(
+            f"{src}: the raster has no coordinate reference system (georeference it first, "
+            "e.g. gdal_translate -a_srs / gdalwarp)"
+        )
     if ds.transform.is_identity:
         ds.close()
         raise AerolocError(f"{src}: the raster has no georeference (identity transform)")
@@ -51,7 +52,7 @@ def import_orthophoto(src, out, to_webmercator: bool = False, resampling: str = 
         raise AerolocError(f"resampling {resampling!r}: use nearest, bilinear, cubic or lanczos") from None
     out.mkdir(parents=True, exist_ok=True)
     dest = out / MAP_FILE
-    options = dict(driver="COG", compress="DEFLATE", blocksize=256, overviews="AUTO", BIGTIFF="IF_SAFER")
+    options = {"driver": "COG", "compress": "DEFLATE", "blocksize": 256, "overviews": "AUTO", "BIGTIFF": "IF_SAFER"}
     with _open_checked(src) as ds:
         source_crs = geo.parse_crs(ds.crs).to_string()
         has_mask = ds.count in (2, 4) or ds.nodata is not None
@@ -64,10 +65,19 @@ def import_orthophoto(src, out, to_webmercator: bool = False, resampling: str = 
     from aeroloc.maps.sources import GeoTiffMap
 
     m = GeoTiffMap(dest)
-    manifest = {"layout": "geotiff", "file": MAP_FILE, "source": str(src.resolve()), "source_crs": source_crs,
-                "crs": m.crs, "reprojected": bool(to_webmercator), "width": m.width, "height": m.height,
-                "transform": list(m.transform)[:6], "bounds": list(m.bounds_latlon()),
-                "resolution_m": round(m.resolution_m, 4),
-                "created": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()}
+    manifest = {
+        "layout": "geotiff",
+        "file": MAP_FILE,
+        "source": str(src.resolve()),
+        "source_crs": source_crs,
+        "crs": m.crs,
+        "reprojected": bool(to_webmercator),
+        "width": m.width,
+        "height": m.height,
+        "transform": list(m.transform)[:6],
+        "bounds": list(m.bounds_latlon()),
+        "resolution_m": round(m.resolution_m, 4),
+        "created": _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat(),
+    }
     atomic_write_text(out / "manifest.json", json.dumps(manifest, indent=1) + "\n")
     return manifest

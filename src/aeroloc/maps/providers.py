@@ -39,11 +39,15 @@ def check_bbox(bbox) -> BBox:
         raise AerolocError(f"bounding box {bbox!r}: values must be finite")
     lim = geo.MAX_MERCATOR_LAT
     if not (-lim <= south < north <= lim):
-        raise AerolocError(f"bounding box {bbox!r}: need -{lim:.2f} <= SOUTH < NORTH <= {lim:.2f} "
-                           "(is it lon-first? the order is SOUTH WEST NORTH EAST)")
+        raise AerolocError(
+            f"bounding box {bbox!r}: need -{lim:.2f} <= SOUTH < NORTH <= {lim:.2f} "
+            "(is it lon-first? the order is SOUTH WEST NORTH EAST)"
+        )
     if not (-180 <= west < east <= 180):
-        raise AerolocError(f"bounding box {bbox!r}: need -180 <= WEST < EAST <= 180 (crossing the antimeridian "
-                           "is not supported: download the two halves into two folders)")
+        raise AerolocError(
+            f"bounding box {bbox!r}: need -180 <= WEST < EAST <= 180 (crossing the antimeridian "
+            "is not supported: download the two halves into two folders)"
+        )
     return south, west, north, east
 
 
@@ -65,8 +69,9 @@ def bbox_around(latlons, margin_m: float) -> BBox:
         lons.append(np.atleast_1d(b))
     lat_all, lon_all = np.concatenate(lats), np.concatenate(lons)
     lim = geo.MAX_MERCATOR_LAT
-    return check_bbox((max(-lim, float(lat_all.min())), float(lon_all.min()),
-                       min(lim, float(lat_all.max())), float(lon_all.max())))
+    return check_bbox(
+        (max(-lim, float(lat_all.min())), float(lon_all.min()), min(lim, float(lat_all.max())), float(lon_all.max()))
+    )
 
 
 def _pixel_span(bbox: BBox, zoom: int) -> tuple[float, float, float, float]:
@@ -183,8 +188,14 @@ class GoogleGrid:
         clat, clon = geo.global_px_to_latlon(x0 + half, y0 + half, zr)
         tl_lat, tl_lon = geo.global_px_to_latlon(x0, y0, zr)
         br_lat, br_lon = geo.global_px_to_latlon(x0 + self.tile_w, y0 + self.tile_h, zr)
-        return GoogleCell(row, col, f"tile_{row:04d}_{col:04d}.png", float(clat), float(clon),
-                          (float(tl_lat), float(tl_lon), float(br_lat), float(br_lon)))
+        return GoogleCell(
+            row,
+            col,
+            f"tile_{row:04d}_{col:04d}.png",
+            float(clat),
+            float(clon),
+            (float(tl_lat), float(tl_lon), float(br_lat), float(br_lon)),
+        )
 
     def cells(self):
         """Row-major: north row first, west to east (the order of map_metadata.txt)."""
@@ -246,8 +257,14 @@ class XYZProvider:
         return None
 
     def url(self, z: int, x: int, y: int, key: str | None = None) -> str:
-        values = {"z": z, "x": x, "y": y, "q": geo.quadkey(x, y, z), "r": "@2x" if self.retina else "",
-                  "s": self.subdomains[(x + y) % len(self.subdomains)] if self.subdomains else ""}
+        values = {
+            "z": z,
+            "x": x,
+            "y": y,
+            "q": geo.quadkey(x, y, z),
+            "r": "@2x" if self.retina else "",
+            "s": self.subdomains[(x + y) % len(self.subdomains)] if self.subdomains else "",
+        }
         if self.needs_key:
             if not key:
                 raise AerolocError(f"provider {self.name} needs a key: set ${TILE_KEY_ENV} or use --key-file")
@@ -272,9 +289,15 @@ class GoogleStaticProvider:
     def url(self, cell: GoogleCell, zoom: int, key: str | None) -> str:
         if not key:
             raise AerolocError(f"the Google Static Maps API needs a key: set ${GOOGLE_KEY_ENV} or use --key-file")
-        query = {"center": f"{cell.centre_lat:.10f},{cell.centre_lon:.10f}", "zoom": zoom,
-                 "size": f"{self.size}x{self.size}", "scale": self.scale, "maptype": self.maptype,
-                 "format": self.image_format, "key": key}
+        query = {
+            "center": f"{cell.centre_lat:.10f},{cell.centre_lon:.10f}",
+            "zoom": zoom,
+            "size": f"{self.size}x{self.size}",
+            "scale": self.scale,
+            "maptype": self.maptype,
+            "format": self.image_format,
+            "key": key,
+        }
         return f"{self.base_url}?{urlencode(query)}"
 
 
@@ -285,9 +308,11 @@ def check_template(template: str) -> str:
         raise AerolocError(f"tile URL template {template!r}: {exc}") from None
     unknown = fields - TEMPLATE_FIELDS
     if unknown:
-        raise AerolocError(f"tile URL template {template!r}: unknown placeholder(s) "
-                           f"{', '.join('{' + f + '}' for f in sorted(unknown))} (known: {{z}} {{x}} {{y}} "
-                           "{s} {q} {r} {key})")
+        raise AerolocError(
+            f"tile URL template {template!r}: unknown placeholder(s) "
+            f"{', '.join('{' + f + '}' for f in sorted(unknown))} (known: {{z}} {{x}} {{y}} "
+            "{s} {q} {r} {key})"
+        )
     if not ({"z", "x", "y"} <= fields or "q" in fields):
         raise AerolocError(f"tile URL template {template!r}: needs {{z}}, {{x}} and {{y}} (or a {{q}} quadkey)")
     return template
@@ -311,16 +336,25 @@ def _xyzservices_provider(name: str, retina: bool) -> XYZProvider:
     try:
         p = catalogue.query_name(name)
     except ValueError:
-        raise AerolocError(f"unknown provider {name!r}: give an XYZ URL template, 'google' or an xyzservices "
-                           "name such as Esri.WorldImagery") from None
+        raise AerolocError(
+            f"unknown provider {name!r}: give an XYZ URL template, 'google' or an xyzservices "
+            "name such as Esri.WorldImagery"
+        ) from None
     if not hasattr(p, "build_url"):
-        raise AerolocError(f"provider {name!r} is a family, not one layer: pick one of "
-                           f"{', '.join(sorted(p.flatten()))[:300]}")
+        raise AerolocError(
+            f"provider {name!r} is a family, not one layer: pick one of {', '.join(sorted(p.flatten()))[:300]}"
+        )
     tokens = {k: "{key}" for k, v in p.items() if isinstance(v, str) and v.startswith("<insert your")}
     template = p.build_url(scale_factor="{r}", fill_subdomain=False, **tokens)
     subdomains = p.get("subdomains", "abc")
-    return XYZProvider(name=p.name, template=check_template(template), subdomains=tuple(subdomains),
-                       attribution=p.get("attribution", ""), retina=retina, max_zoom=p.get("max_zoom"))
+    return XYZProvider(
+        name=p.name,
+        template=check_template(template),
+        subdomains=tuple(subdomains),
+        attribution=p.get("attribution", ""),
+        retina=retina,
+        max_zoom=p.get("max_zoom"),
+    )
 
 
 def read_key(provider, key_file: str | os.PathLike | None = None) -> str | None:

@@ -43,7 +43,8 @@ class Map:
         """RGB uint8 (height x width x 3) and valid mask (bool) of a window inside the map."""
         if col < 0 or row < 0 or width <= 0 or height <= 0 or col + width > self.width or row + height > self.height:
             raise AerolocError(
-                f"{self.path}: window col={col} row={row} {width}x{height} is outside the {self.width}x{self.height} map")
+                f"{self.path}: window col={col} row={row} {width}x{height} is outside the {self.width}x{self.height} map"
+            )
         rgb, valid = self._read(int(col), int(row), int(width), int(height))
         rgb = np.where(valid[..., None], rgb, 0).astype(np.uint8)
         return rgb, valid
@@ -80,9 +81,16 @@ class Map:
         return float(np.min(lat)), float(np.min(lon)), float(np.max(lat)), float(np.max(lon))
 
     def describe(self) -> dict:
-        return {"path": str(self.path), "kind": type(self).__name__, "crs": self.crs,
-                "transform": list(self.transform)[:6], "width": self.width, "height": self.height,
-                "base_tile_px": self.base_tile_px, "resolution_m": round(self.resolution_m, 4)}
+        return {
+            "path": str(self.path),
+            "kind": type(self).__name__,
+            "crs": self.crs,
+            "transform": list(self.transform)[:6],
+            "width": self.width,
+            "height": self.height,
+            "base_tile_px": self.base_tile_px,
+            "resolution_m": round(self.resolution_m, 4),
+        }
 
 
 class GeoTiffMap(Map):
@@ -146,8 +154,16 @@ def _to_uint8(a: np.ndarray) -> np.ndarray:
 class TileFolderMap(Map):
     """A mosaic of equally sized image tiles on a regular grid in Web Mercator (seed metadata or XYZ)."""
 
-    def __init__(self, path, cells: dict[tuple[int, int], Path], n_rows: int, n_cols: int,
-                 tile_w: int, tile_h: int, transform: Affine):
+    def __init__(
+        self,
+        path,
+        cells: dict[tuple[int, int], Path],
+        n_rows: int,
+        n_cols: int,
+        tile_w: int,
+        tile_h: int,
+        transform: Affine,
+    ):
         self.path = Path(path)
         self.crs = geo.WEB_MERCATOR
         self.cells, self.n_rows, self.n_cols = cells, n_rows, n_cols
@@ -168,8 +184,10 @@ class TileFolderMap(Map):
         else:
             img = read_image(p)
             if img.shape[:2] != (self.tile_h, self.tile_w):
-                raise AerolocError(f"{p}: tile is {img.shape[1]}x{img.shape[0]} px, expected "
-                                   f"{self.tile_w}x{self.tile_h} like the other tiles")
+                raise AerolocError(
+                    f"{p}: tile is {img.shape[1]}x{img.shape[0]} px, expected "
+                    f"{self.tile_w}x{self.tile_h} like the other tiles"
+                )
             valid = np.ones(img.shape[:2], bool)
         self._cache[key] = (img, valid)
         if len(self._cache) > 64:
@@ -185,8 +203,8 @@ class TileFolderMap(Map):
                 y0, x0 = r * self.tile_h, c * self.tile_w
                 ys, xs = max(row, y0), max(col, x0)
                 ye, xe = min(row + height, y0 + self.tile_h), min(col + width, x0 + self.tile_w)
-                out[ys - row:ye - row, xs - col:xe - col] = img[ys - y0:ye - y0, xs - x0:xe - x0]
-                valid[ys - row:ye - row, xs - col:xe - col] = ok[ys - y0:ye - y0, xs - x0:xe - x0]
+                out[ys - row : ye - row, xs - col : xe - col] = img[ys - y0 : ye - y0, xs - x0 : xe - x0]
+                valid[ys - row : ye - row, xs - col : xe - col] = ok[ys - y0 : ye - y0, xs - x0 : xe - x0]
         return out, valid
 
     def __getstate__(self):
@@ -227,7 +245,7 @@ def open_metadata_folder(folder: str | os.PathLike, metadata: str = "map_metadat
     if n_cols == 0 or len(rows) % n_cols:
         raise AerolocError(f"{meta}: {len(rows)} rows do not form a grid of {n_cols} columns")
     n_rows = len(rows) // n_cols
-    grid = [rows[i * n_cols:(i + 1) * n_cols] for i in range(n_rows)]
+    grid = [rows[i * n_cols : (i + 1) * n_cols] for i in range(n_rows)]
     tol = 1e-7
     for ri, line in enumerate(grid):
         for ci, (name, tl_lat, tl_lon, br_lat, br_lon) in enumerate(line):
@@ -238,8 +256,10 @@ def open_metadata_folder(folder: str | os.PathLike, metadata: str = "map_metadat
             if ri:
                 ok &= abs(tl_lat - grid[ri - 1][ci][3]) < tol
             if not ok:
-                raise AerolocError(f"{meta}: tile {name} (row {ri}, column {ci}) breaks the row-major grid "
-                                   "(rows must run north to south, columns west to east, edges shared)")
+                raise AerolocError(
+                    f"{meta}: tile {name} (row {ri}, column {ci}) breaks the row-major grid "
+                    "(rows must run north to south, columns west to east, edges shared)"
+                )
     tw, th = _image_size(folder / grid[0][0][0])
     x0, y0 = geo.mercator_from_latlon(grid[0][0][1], grid[0][0][2])
     x1, y1 = geo.mercator_from_latlon(grid[-1][-1][3], grid[-1][-1][4])
@@ -262,8 +282,10 @@ def _check_even_spacing(meta: Path, grid, transform: Affine, tw: int, th: int, t
             cols, rows = geo.pixel_to_world(inv, x, y)
             err = np.abs(np.r_[cols - [ci * tw, (ci + 1) * tw], rows - [ri * th, (ri + 1) * th]]).max()
             if err > tol_px:
-                raise AerolocError(f"{meta}: tile {name} (row {ri}, column {ci}) is {err:.1f} px off an evenly "
-                                   "spaced grid (all tiles must span the same Web Mercator extent)")
+                raise AerolocError(
+                    f"{meta}: tile {name} (row {ri}, column {ci}) is {err:.1f} px off an evenly "
+                    "spaced grid (all tiles must span the same Web Mercator extent)"
+                )
 
 
 def open_xyz_folder(folder: str | os.PathLike, zoom: int | None = None) -> TileFolderMap:
@@ -332,5 +354,12 @@ def meters_to_pixels(m: Map, metres: float) -> int:
     return max(1, int(round(metres / m.resolution_m)))
 
 
-__all__ = ["Map", "GeoTiffMap", "TileFolderMap", "open_map", "open_metadata_folder", "open_xyz_folder",
-           "meters_to_pixels"]
+__all__ = [
+    "GeoTiffMap",
+    "Map",
+    "TileFolderMap",
+    "meters_to_pixels",
+    "open_map",
+    "open_metadata_folder",
+    "open_xyz_folder",
+]

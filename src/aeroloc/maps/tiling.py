@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -22,15 +21,32 @@ from affine import Affine
 
 from aeroloc.core import geo
 from aeroloc.core.errors import AerolocError
-from aeroloc.maps.sources import Map, open_map
 from aeroloc.core.io import write_csv_atomic
+from aeroloc.maps.sources import Map, open_map
 
 DEFAULT_BASE_PX = 256
 TILES_CSV = "tiles.csv"
 TILES_JSON = "tiles.json"
 BUILDING_JSON = "building.json"  # the configuration whose images/ are being rendered (absent once complete)
-CSV_COLUMNS = ["tile", "path", "tl_lat", "tl_lon", "br_lat", "br_lon", "width", "height", "col", "row",
-               "crs", "a", "b", "c", "d", "e", "f"]
+CSV_COLUMNS = [
+    "tile",
+    "path",
+    "tl_lat",
+    "tl_lon",
+    "br_lat",
+    "br_lon",
+    "width",
+    "height",
+    "col",
+    "row",
+    "crs",
+    "a",
+    "b",
+    "c",
+    "d",
+    "e",
+    "f",
+]
 
 
 @dataclass(frozen=True)
@@ -85,8 +101,14 @@ def tile_count(length: int, side: int, step: int) -> int:
 class TileGrid:
     """The tiles of ``map`` at ``zoom`` and ``overlap`` (see the module docstring for the rules)."""
 
-    def __init__(self, map_: Map, zoom: float = 1.0, overlap: float = 0.0, tile_m: float | None = None,
-                 base_px: int | None = None):
+    def __init__(
+        self,
+        map_: Map,
+        zoom: float = 1.0,
+        overlap: float = 0.0,
+        tile_m: float | None = None,
+        base_px: int | None = None,
+    ):
         if not (isinstance(zoom, (int, float)) and np.isfinite(zoom) and zoom > 0):
             raise AerolocError(f"zoom must be > 0, got {zoom}")
         if not (isinstance(overlap, (int, float)) and 0 <= overlap < 1):
@@ -105,7 +127,8 @@ class TileGrid:
         if self.side > min(map_.width, map_.height):
             raise AerolocError(
                 f"{map_.path}: tiles of {self.side} px (zoom {zoom}, base {self.base_px:.0f} px) are larger than "
-                f"the {map_.width}x{map_.height} map; use a higher zoom or a smaller --tile-m")
+                f"the {map_.width}x{map_.height} map; use a higher zoom or a smaller --tile-m"
+            )
         self.step = max(1, int(round(self.side * (1 - self.overlap))))
         self.cols = axis_starts(map_.width, self.side, self.step)
         self.rows = axis_starts(map_.height, self.side, self.step)
@@ -117,13 +140,28 @@ class TileGrid:
         t = self.map.transform
         for i, r in enumerate(self.rows):
             for j, c in enumerate(self.cols):
-                yield Tile(id=f"r{i:03d}c{j:03d}", col=c, row=r, width=self.side, height=self.side,
-                           transform=shifted(t, c, r), crs=self.map.crs,
-                           path=f"images/r{i:03d}c{j:03d}.png")
+                yield Tile(
+                    id=f"r{i:03d}c{j:03d}",
+                    col=c,
+                    row=r,
+                    width=self.side,
+                    height=self.side,
+                    transform=shifted(t, c, r),
+                    crs=self.map.crs,
+                    path=f"images/r{i:03d}c{j:03d}.png",
+                )
 
     def params(self) -> dict:
-        return {"zoom": self.zoom, "overlap": self.overlap, "tile_m": self.tile_m, "base_px": self.base_px,
-                "side_px": self.side, "step_px": self.step, "n_rows": len(self.rows), "n_cols": len(self.cols)}
+        return {
+            "zoom": self.zoom,
+            "overlap": self.overlap,
+            "tile_m": self.tile_m,
+            "base_px": self.base_px,
+            "side_px": self.side,
+            "step_px": self.step,
+            "n_rows": len(self.rows),
+            "n_cols": len(self.cols),
+        }
 
 
 def shifted(t: Affine, col: int, row: int) -> Affine:
@@ -135,10 +173,25 @@ def shifted(t: Affine, col: int, row: int) -> Affine:
 def tile_row(t: Tile) -> dict:
     (tl_lat, tl_lon), (br_lat, br_lon) = t.corners_latlon
     a, b, c, d, e, f = list(t.transform)[:6]
-    return {"tile": t.id, "path": t.path, "tl_lat": f"{tl_lat:.9f}", "tl_lon": f"{tl_lon:.9f}",
-            "br_lat": f"{br_lat:.9f}", "br_lon": f"{br_lon:.9f}", "width": t.width, "height": t.height,
-            "col": t.col, "row": t.row, "crs": t.crs, "a": repr(a), "b": repr(b), "c": repr(c),
-            "d": repr(d), "e": repr(e), "f": repr(f)}
+    return {
+        "tile": t.id,
+        "path": t.path,
+        "tl_lat": f"{tl_lat:.9f}",
+        "tl_lon": f"{tl_lon:.9f}",
+        "br_lat": f"{br_lat:.9f}",
+        "br_lon": f"{br_lon:.9f}",
+        "width": t.width,
+        "height": t.height,
+        "col": t.col,
+        "row": t.row,
+        "crs": t.crs,
+        "a": repr(a),
+        "b": repr(b),
+        "c": repr(c),
+        "d": repr(d),
+        "e": repr(e),
+        "f": repr(f),
+    }
 
 
 def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=True) -> dict:
@@ -204,8 +257,11 @@ def _existing(out: Path, info: dict) -> dict | None:
         old = json.loads(meta.read_text())
     except json.JSONDecodeError:
         return None
-    same = old.get("grid") == info["grid"] and old.get("map", {}).get("path") == info["map"]["path"] \
+    same = (
+        old.get("grid") == info["grid"]
+        and old.get("map", {}).get("path") == info["map"]["path"]
         and old.get("map", {}).get("transform") == info["map"]["transform"]
+    )
     if same:
         return {**old, "cached": True}
     if (out / "images").is_dir():  # another configuration lives here: start afresh
@@ -229,8 +285,18 @@ def load_tiles(db_dir) -> list[Tile]:
             try:
                 if r.get("a"):
                     tr = Affine(*(float(r[k]) for k in "abcdef"))
-                    tiles.append(Tile(r["tile"], int(r["col"]), int(r["row"]), int(r["width"]), int(r["height"]),
-                                      tr, r["crs"], r.get("path", "")))
+                    tiles.append(
+                        Tile(
+                            r["tile"],
+                            int(r["col"]),
+                            int(r["row"]),
+                            int(r["width"]),
+                            int(r["height"]),
+                            tr,
+                            r["crs"],
+                            r.get("path", ""),
+                        )
+                    )
                 else:
                     tiles.append(_tile_from_corners(r))
             except (ValueError, KeyError) as exc:
@@ -254,4 +320,4 @@ def load_info(db_dir) -> dict:
     return json.loads(p.read_text())
 
 
-__all__ = ["Tile", "TileGrid", "write_tiles", "load_tiles", "load_info", "axis_starts", "tile_count"]
+__all__ = ["Tile", "TileGrid", "axis_starts", "load_info", "load_tiles", "tile_count", "write_tiles"]

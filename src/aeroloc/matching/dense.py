@@ -95,14 +95,16 @@ def _rotated_inner(image: np.ndarray, angle: float) -> np.ndarray:
     # largest axis-aligned rectangle of the same aspect inside the rotated one
     k = min(w / (w * c + h * s), h / (w * s + h * c))
     mw, mh = int(np.ceil(w * (1 - k) / 2)) + 1, int(np.ceil(h * (1 - k) / 2)) + 1
-    return rot[mh:h - mh, mw:w - mw]
+    return rot[mh : h - mh, mw : w - mw]
 
 
 def _subpixel(res: np.ndarray, y: int, x: int) -> tuple[float, float]:
     """Parabolic peak interpolation along each axis."""
+
     def off(a, b, c):
         d = a - 2 * b + c
         return 0.0 if d >= 0 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
     dx = off(res[y, x - 1], res[y, x], res[y, x + 1]) if 0 < x < res.shape[1] - 1 else 0.0
     dy = off(res[y - 1, x], res[y, x], res[y + 1, x]) if 0 < y < res.shape[0] - 1 else 0.0
     return y + dy, x + dx
@@ -147,7 +149,7 @@ class Correlator:
         q = (q - q.mean(axis=(1, 2), keepdims=True)).astype(np.float32)
         qnorm = float(np.sqrt((q.astype(np.float64) ** 2).sum()))
         qs = fft.rfft2(q[:, ::-1, ::-1], s=(self.P, self.Q), workers=-1)  # convolution with the flipped template
-        num = fft.irfft2((self.spectra * qs).sum(0), s=(self.P, self.Q), workers=-1)[h - 1:self.H, w - 1:self.W]
+        num = fft.irfft2((self.spectra * qs).sum(0), s=(self.P, self.Q), workers=-1)[h - 1 : self.H, w - 1 : self.W]
         spread = self._spread.get((h, w))
         if spread is None:  # the same for every template of this size (e.g. headings of opposite sign)
             var = _box_sums(self.squares, h, w) - sum(_box_sums(s, h, w) ** 2 for s in self.sums) / (h * w)
@@ -194,8 +196,7 @@ class DenseRegion:
                 found = self._refine(query, found, best, turned, sc)
         return found
 
-    def _refine(self, query: np.ndarray, found: DenseMatch, peak: DenseMatch, angle: float,
-                scale: float) -> DenseMatch:
+    def _refine(self, query: np.ndarray, found: DenseMatch, peak: DenseMatch, angle: float, scale: float) -> DenseMatch:
         """``found``, or the query at ``angle`` and ``scale`` placed near ``peak`` if that scores higher."""
         q = _rotated_inner(resize(query, scale), angle)
         h, w = q.shape[:2]
@@ -207,7 +208,7 @@ class DenseRegion:
         if res is None:
             return found
         if self.invalid is not None:  # the integral's window starts one row and column before its first pixel
-            res = np.where(_placement_valid(self.invalid[y0:y1 + 1, x0:x1 + 1], (h, w)), res, -1.0)
+            res = np.where(_placement_valid(self.invalid[y0 : y1 + 1, x0 : x1 + 1], (h, w)), res, -1.0)
         y, x = np.unravel_index(int(res.argmax()), res.shape)
         if res[y, x] <= found.score:
             return found
@@ -220,8 +221,9 @@ def _angle_step(angles) -> float:
     return float(min(np.diff(a))) if len(a) > 1 else 0.0
 
 
-def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
-            invalid: np.ndarray | None = None) -> DenseMatch | None:
+def _search(
+    correlator: Correlator, query: np.ndarray, angles, conf: dict, invalid: np.ndarray | None = None
+) -> DenseMatch | None:
     """The best placement of ``query`` (RGB, at the region's ground resolution) in the region of ``correlator``,
     over ``angles``; None when the query is larger than the region at every heading.
 
@@ -238,7 +240,7 @@ def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
         if peaks is None:
             peaks = np.full((correlator.H, correlator.W), -1.0, np.float32)
         oy, ox = q.shape[0] // 2, q.shape[1] // 2  # a placement's top-left offset -> its centre pixel
-        view = peaks[oy:oy + res.shape[0], ox:ox + res.shape[1]]
+        view = peaks[oy : oy + res.shape[0], ox : ox + res.shape[1]]
         np.maximum(view, res, out=view)
         if best is None or res.max() > best[0]:
             best = (float(res.max()), a, res, q.shape[:2])
@@ -248,7 +250,7 @@ def _search(correlator: Correlator, query: np.ndarray, angles, conf: dict,
     y, x = np.unravel_index(int(res.argmax()), res.shape)
     # the strongest peak a footprint away from the best centre, over every heading
     r = conf["exclusion"] * max(h, w)
-    yy, xx = np.ogrid[:peaks.shape[0], :peaks.shape[1]]
+    yy, xx = np.ogrid[: peaks.shape[0], : peaks.shape[1]]
     far = (yy - (y + h // 2)) ** 2 + (xx - (x + w // 2)) ** 2 > r * r
     second = float(peaks[far].max()) if far.any() else -1.0
     sy, sx = _subpixel(res, y, x)

@@ -12,13 +12,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from aeroloc.core.frames import resize, resize_to_side
 from aeroloc.core.images import read_image, valid_mask
-from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore
 from aeroloc.core.io import config_key
+from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore
 
 
 def _rot90_points(xy: np.ndarray, k: int, w: int, h: int) -> np.ndarray:
@@ -34,8 +33,9 @@ def _rot90_points(xy: np.ndarray, k: int, w: int, h: int) -> np.ndarray:
     return np.stack([y, h - x], 1)  # k == 3
 
 
-def extract(extractor, image: np.ndarray, side: int | None = None, rot_k: int = 0,
-            mask: np.ndarray | None = None) -> dict:
+def extract(
+    extractor, image: np.ndarray, side: int | None = None, rot_k: int = 0, mask: np.ndarray | None = None
+) -> dict:
     """Features of ``image`` rotated by rot_k*90° CCW and resized to ``side``.
 
     ``keypoints`` stay in the frame the extractor saw (what matchers with positional encodings expect);
@@ -68,12 +68,12 @@ def local_key(db, name: str, conf: dict) -> str:
     """Hash of what the stored tile features depend on: the extractor and its conf, the tiles' working side, the
     tile set and the store's format. Re-ranking settings (thresholds, rotations, geometry) are not part of it, so
     changing them reuses the store."""
-    from aeroloc.matching.registry import reranker_conf
-    from aeroloc.matching.registry import feature_overrides
+    from aeroloc.matching.registry import feature_overrides, reranker_conf
 
     extractor = reranker_conf(conf["features"], feature_overrides(conf))["extractor"]
-    return config_key(conf["features"], conf["tile_side"], extractor, db.tiles_hash(),
-                      {"feature_format": FEATURE_FORMAT})
+    return config_key(
+        conf["features"], conf["tile_side"], extractor, db.tiles_hash(), {"feature_format": FEATURE_FORMAT}
+    )
 
 
 def store_for(db, name: str, conf: dict) -> FeatureStore:
@@ -86,16 +86,19 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     """Precompute the local features of every tile for re-ranker ``name`` (resumable: done tiles are kept)."""
     from tqdm import tqdm
 
-    from aeroloc.matching.registry import feature_overrides, rerank_conf
-    from aeroloc.matching.registry import build_reranker
+    from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
     rconf = rerank_conf(name, conf)
     store = store_for(db, name, rconf)
     done = store.names()
     todo = [t for t in db.tiles if t.id not in done]
     if not todo:
-        return {"n_tiles": len(db.tiles), "cached": True, "bytes_per_tile": store.bytes_per_item(),
-                "path": str(store.path)}
+        return {
+            "n_tiles": len(db.tiles),
+            "cached": True,
+            "bytes_per_tile": store.bytes_per_item(),
+            "path": str(store.path),
+        }
     extractor, _ = build_reranker(rconf["features"], device, feature_overrides(rconf))
     t0 = time.perf_counter()
     batch = {}
@@ -107,5 +110,10 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     if batch:
         store.write_many(batch)
     dt = time.perf_counter() - t0
-    return {"n_tiles": len(db.tiles), "cached": False, "tiles_per_s": len(todo) / max(dt, 1e-9),
-            "bytes_per_tile": store.bytes_per_item(), "path": str(store.path)}
+    return {
+        "n_tiles": len(db.tiles),
+        "cached": False,
+        "tiles_per_s": len(todo) / max(dt, 1e-9),
+        "bytes_per_tile": store.bytes_per_item(),
+        "path": str(store.path),
+    }

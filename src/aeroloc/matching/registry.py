@@ -78,8 +78,12 @@ RERANKERS: dict[str, dict] = {
         "matcher": {"name": "mnn", "min_similarity": 0.7},  # XFeat's own 0.82 halves the inliers across seasons
     },
     "aliked-lightglue": {
-        "extractor": {"name": "aliked", "model_name": "aliked-n16", "max_keypoints": 1024,
-                      "detection_threshold": -1},  # <= 0: the top max_keypoints, not a score threshold
+        "extractor": {
+            "name": "aliked",
+            "model_name": "aliked-n16",
+            "max_keypoints": 1024,
+            "detection_threshold": -1,
+        },  # <= 0: the top max_keypoints, not a score threshold
         "matcher": {"name": "lightglue", "features": "aliked", "filter_threshold": 0.1},
     },
     "disk-lightglue": {
@@ -98,8 +102,7 @@ RERANKERS: dict[str, dict] = {
     },
     "superpoint-superglue": {
         "extractor": {"name": "superpoint", "max_keypoints": 2048, "detection_threshold": 0.005},
-        "matcher": {"name": "superglue", "weights": "outdoor", "sinkhorn_iterations": 100,
-                    "match_threshold": 0.2},
+        "matcher": {"name": "superglue", "weights": "outdoor", "sinkhorn_iterations": 100, "match_threshold": 0.2},
     },
     "selavpr": {
         "cascade": {"screen": False, "rotations": [0]},

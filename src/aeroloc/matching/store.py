@@ -13,7 +13,6 @@ import numpy as np
 
 from aeroloc.core.errors import AerolocError
 
-
 # Version of the FeatureStore encoding; part of the store's directory key (localfeatures.local_key) so a store
 # written in another format is never mixed with this one. 1: float16 descriptors; 2: int8 unit-norm descriptors.
 FEATURE_FORMAT = 2
@@ -50,7 +49,7 @@ class FeatureStore:
         if not self.path.is_file():
             return set()
         with self._open("r") as f:
-            return {k for k in f.keys() if not k.startswith("~")}
+            return {k for k in f if not k.startswith("~")}
 
     @staticmethod
     def encode(key: str, value) -> tuple[np.ndarray, dict]:
@@ -116,7 +115,7 @@ class FeatureStore:
                 if name not in self.f:
                     raise AerolocError(f"{store.path}: no features for tile {name}")
                 g = self.f[name]
-                return {k: store.decode(g[k]) for k in g.keys()}
+                return {k: store.decode(g[k]) for k in g}
 
         return _Reader()
 

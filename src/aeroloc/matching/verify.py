@@ -51,8 +51,16 @@ def _paired(kpts0, kpts1, matches) -> tuple[np.ndarray, np.ndarray]:
     return p0, p1
 
 
-def verify_homography(kpts0, kpts1, matches=None, method: str = "magsac", threshold_px: float = 4.0,
-                      min_matches: int = 4, confidence: float = 0.9999, max_iters: int = 10000) -> Verification:
+def verify_homography(
+    kpts0,
+    kpts1,
+    matches=None,
+    method: str = "magsac",
+    threshold_px: float = 4.0,
+    min_matches: int = 4,
+    confidence: float = 0.9999,
+    max_iters: int = 10000,
+) -> Verification:
     """Fit ``H`` with ``kpts1[matches[:, 1]] ~ H @ kpts0[matches[:, 0]]`` robustly.
 
     kpts0, kpts1: (N, 2) x, y arrays; matches: (M, 2) indices, or None when kpts0/kpts1 are already paired.
@@ -65,21 +73,24 @@ def verify_homography(kpts0, kpts1, matches=None, method: str = "magsac", thresh
     if len(p0) < max(4, min_matches) or not (np.isfinite(p0).all() and np.isfinite(p1).all()):
         return none
     try:
-        H, mask = cv2.findHomography(p0, p1, flag, float(threshold_px), maxIters=int(max_iters),
-                                     confidence=float(confidence))
+        H, mask = cv2.findHomography(
+            p0, p1, flag, float(threshold_px), maxIters=int(max_iters), confidence=float(confidence)
+        )
     except cv2.error:
         if flag == cv2.RANSAC:
             return none
-        H, mask = cv2.findHomography(p0, p1, cv2.RANSAC, float(threshold_px), maxIters=int(max_iters),
-                                     confidence=float(confidence))
+        H, mask = cv2.findHomography(
+            p0, p1, cv2.RANSAC, float(threshold_px), maxIters=int(max_iters), confidence=float(confidence)
+        )
     if H is None or mask is None or not np.isfinite(H).all():
         return none
     inliers = mask.reshape(-1).astype(bool)
     return Verification(np.asarray(H, np.float64), inliers, int(inliers.sum()))
 
 
-def verify_similarity(kpts0, kpts1, matches=None, threshold_px: float = 4.0, confidence: float = 0.999,
-                      max_iters: int = 2000) -> Verification:
+def verify_similarity(
+    kpts0, kpts1, matches=None, threshold_px: float = 4.0, confidence: float = 0.999, max_iters: int = 2000
+) -> Verification:
     """RANSAC fit of a similarity (rotation, uniform scale, shift) with ``kpts1 ~ H @ kpts0``; H is 3x3.
 
     The 4-DOF model of a nadir view over flat ground. Its minimal sample is 2 matches instead of a homography's 4,
@@ -91,17 +102,28 @@ def verify_similarity(kpts0, kpts1, matches=None, threshold_px: float = 4.0, con
     none = Verification(None, np.zeros(len(p0), bool), 0)
     if len(p0) < 2 or not (np.isfinite(p0).all() and np.isfinite(p1).all()):
         return none
-    A, mask = cv2.estimateAffinePartial2D(p0.astype(np.float32), p1.astype(np.float32), method=cv2.RANSAC,
-                                          ransacReprojThreshold=float(threshold_px), maxIters=int(max_iters),
-                                          confidence=float(confidence))
+    A, mask = cv2.estimateAffinePartial2D(
+        p0.astype(np.float32),
+        p1.astype(np.float32),
+        method=cv2.RANSAC,
+        ransacReprojThreshold=float(threshold_px),
+        maxIters=int(max_iters),
+        confidence=float(confidence),
+    )
     if A is None or mask is None or not np.isfinite(A).all():
         return none
     inliers = mask.reshape(-1).astype(bool)
     return Verification(np.vstack([A, [0.0, 0.0, 1.0]]).astype(np.float64), inliers, int(inliers.sum()))
 
 
-def homography_is_sane(H, src_size, min_scale: float = 0.05, max_scale: float = 20.0, max_anisotropy: float = 3.0,
-                       max_perspective: float = 1.5) -> tuple[bool, str]:
+def homography_is_sane(
+    H,
+    src_size,
+    min_scale: float = 0.05,
+    max_scale: float = 20.0,
+    max_anisotropy: float = 3.0,
+    max_perspective: float = 1.5,
+) -> tuple[bool, str]:
     """Whether ``H`` can be a real view of the source image (``src_size`` = (width, height)), and why not.
 
     Rejected: non-finite or singular H; a source corner at or beyond the horizon (w <= 0); a mirrored

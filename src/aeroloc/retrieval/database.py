@@ -12,18 +12,15 @@ Layout::
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
-from aeroloc.maps import tiling
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.io import atomic_path, config_key, file_identity, write_json_atomic
+from aeroloc.maps import tiling
 from aeroloc.retrieval.store import DescriptorStore
-from aeroloc.core.io import config_key, file_identity
-from aeroloc.core.io import write_json_atomic
-from aeroloc.core.io import atomic_path
 
 DB_JSON = "db.json"
 
@@ -31,8 +28,9 @@ DB_JSON = "db.json"
 def _progress(total, desc, enabled, initial=0):
     from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, desc=desc, unit="tile", disable=not enabled, leave=False,
-                dynamic_ncols=True)
+    return tqdm(
+        total=total, initial=initial, desc=desc, unit="tile", disable=not enabled, leave=False, dynamic_ncols=True
+    )
 
 
 class Database:
@@ -59,8 +57,10 @@ class Database:
         method = method or self.meta.get("default_method")
         if not method or method not in entries:
             have = ", ".join(sorted(entries)) or "none"
-            raise AerolocError(f"{self.folder}: no descriptors for method '{method}' (built: {have}); "
-                               "run 'aeroloc build' with --method")
+            raise AerolocError(
+                f"{self.folder}: no descriptors for method '{method}' (built: {have}); "
+                "run 'aeroloc build' with --method"
+            )
         return method, self.folder / entries[method]["dir"]
 
     def load_method(self, method: str | None = None, device="cpu"):
@@ -80,18 +80,26 @@ class Database:
         return model, store, load_index(gdir / "index.faiss"), entry
 
 
-def build_global(db: Database, method: str, conf: dict | None = None, weights=None, device="cpu",
-                 batch_size: int = 16, workers: int | None = None, index_factory: str = "Flat",
-                 half: bool = False, fit_max_tiles: int = 2000, progress: bool = True) -> dict:
+def build_global(
+    db: Database,
+    method: str,
+    conf: dict | None = None,
+    weights=None,
+    device="cpu",
+    batch_size: int = 16,
+    workers: int | None = None,
+    index_factory: str = "Flat",
+    half: bool = False,
+    fit_max_tiles: int = 2000,
+    progress: bool = True,
+) -> dict:
     """Descriptors of every tile + a Faiss index, cached and resumable. Returns timings and sizes."""
     import torch
 
-    from aeroloc.retrieval.descriptors import iter_descriptors
     from aeroloc.core.images import read_image
+    from aeroloc.retrieval.descriptors import iter_descriptors
     from aeroloc.retrieval.index import build_index, save_index
-    from aeroloc.retrieval.models import build_method
-
-    from aeroloc.retrieval.models import method_class
+    from aeroloc.retrieval.models import build_method, method_class
 
     conf = dict(conf or {})
     weights_id = file_identity(weights) if weights else None
@@ -103,8 +111,12 @@ def build_global(db: Database, method: str, conf: dict | None = None, weights=No
     report = {"method": method, "key": key, "dir": str(gdir.relative_to(db.folder)), "n_tiles": len(db.tiles)}
     # the full effective configuration, so queries are described exactly as the tiles were even after a class
     # default changes (an entry with the overrides only would pick up the new default for queries alone)
-    entry = {"dir": report["dir"], "conf": _jsonable(full_conf), "weights": str(weights) if weights else None,
-             "index": index_factory}
+    entry = {
+        "dir": report["dir"],
+        "conf": _jsonable(full_conf),
+        "weights": str(weights) if weights else None,
+        "index": index_factory,
+    }
     if (gdir / "meta.json").is_file() and (gdir / "index.faiss").is_file():
         existing = DescriptorStore.open_complete(gdir)
         db.meta.setdefault("global", {})[method] = entry
@@ -148,11 +160,18 @@ def build_global(db: Database, method: str, conf: dict | None = None, weights=No
     db.meta.setdefault("global", {})[method] = entry
     db.meta["default_method"] = method
     db.save_meta()
-    return {**report, "cached": False, "dim": model.dim, "fit_s": t_fit, "extract_s": t_desc,
-            "index_s": t_index, "total_s": time.perf_counter() - t_start,
-            "tiles_per_s": (len(paths) - start) / max(t_desc, 1e-9),
-            "bytes_per_tile": store.bytes_per_item(),
-            "index_bytes": (gdir / "index.faiss").stat().st_size}
+    return {
+        **report,
+        "cached": False,
+        "dim": model.dim,
+        "fit_s": t_fit,
+        "extract_s": t_desc,
+        "index_s": t_index,
+        "total_s": time.perf_counter() - t_start,
+        "tiles_per_s": (len(paths) - start) / max(t_desc, 1e-9),
+        "bytes_per_tile": store.bytes_per_item(),
+        "index_bytes": (gdir / "index.faiss").stat().st_size,
+    }
 
 
 def _jsonable(conf: dict) -> dict:

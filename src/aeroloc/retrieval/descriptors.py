@@ -4,7 +4,7 @@ the model runs under ``torch.inference_mode()``; half precision on GPUs when ask
 from __future__ import annotations
 
 import time
-from typing import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -36,12 +36,14 @@ def default_workers(n_items: int, device=None) -> int:
     return max(0, min(4, cpus - 2))
 
 
-def iter_descriptors(model, paths: Sequence, device, batch_size: int = 16, workers: int | None = None,
-                     half: bool = False) -> Iterator[np.ndarray]:
+def iter_descriptors(
+    model, paths: Sequence, device, batch_size: int = 16, workers: int | None = None, half: bool = False
+) -> Iterator[np.ndarray]:
     """Yield float32 (b, dim) descriptor batches for ``paths`` in order."""
     workers = default_workers(len(paths), device) if workers is None else workers
-    loader = torch.utils.data.DataLoader(_ImageDataset(paths, model.preprocess), batch_size=batch_size,
-                                         num_workers=workers, shuffle=False)
+    loader = torch.utils.data.DataLoader(
+        _ImageDataset(paths, model.preprocess), batch_size=batch_size, num_workers=workers, shuffle=False
+    )
     use_half = half and device.type == "cuda"
     with torch.inference_mode():
         for batch in loader:

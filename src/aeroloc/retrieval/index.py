@@ -6,6 +6,7 @@ are trained on the database descriptors; asking for more neighbours than there a
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +30,9 @@ def build_index(descriptors: np.ndarray, factory: str = "Flat"):
         try:
             index.train(x)
         except RuntimeError as exc:
-            raise AerolocError(f"faiss index '{factory}' training failed on {n} descriptors: "
-                               f"{str(exc).splitlines()[0]}") from None
+            raise AerolocError(
+                f"faiss index '{factory}' training failed on {n} descriptors: {str(exc).splitlines()[0]}"
+            ) from None
     index.add(x)
     return index
 
@@ -41,10 +43,8 @@ def _skip_polysemous_training(index) -> None:
     import faiss
 
     parts = [index]
-    try:
+    with contextlib.suppress(RuntimeError):  # not an IVF index
         parts.append(faiss.extract_index_ivf(index))
-    except RuntimeError:  # not an IVF index
-        pass
     storage = getattr(faiss.downcast_index(index), "storage", None)  # HNSW32,PQ8 …
     if storage is not None:
         parts.append(storage)

@@ -20,11 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aeroloc.retrieval.database import Database
 from aeroloc.core.errors import AerolocError
+from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.descriptors import describe_image
 from aeroloc.retrieval.index import search
-
 
 QUERY_SCALE = 1.5  # longest query side, in tile sides (see the module docstring)
 
@@ -60,8 +59,9 @@ def rotate_image(image: np.ndarray, angle_deg: float) -> np.ndarray:
     h, w = image.shape[:2]
     m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle_deg, 1.0)
     out = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    inside = cv2.warpAffine(np.ones((h, w), np.float32), m, (w, h), flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = cv2.warpAffine(
+        np.ones((h, w), np.float32), m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     out[inside < 0.99] = 0
     return out
 
@@ -72,8 +72,14 @@ class Retriever:
     ``rotations`` (default for every call, or per call) > 1 searches the query at that many headings.
     """
 
-    def __init__(self, db: Database, method: str | None = None, device="cpu", rotations: int = 1,
-                 query_scale: float | None = QUERY_SCALE):
+    def __init__(
+        self,
+        db: Database,
+        method: str | None = None,
+        device="cpu",
+        rotations: int = 1,
+        query_scale: float | None = QUERY_SCALE,
+    ):
         self.rotations = check_rotations(rotations)
         if query_scale is not None and not query_scale > 0:
             raise AerolocError(f"query_scale must be > 0 (or None: keep the query's size), got {query_scale!r}")
@@ -121,7 +127,7 @@ class Retriever:
         t_search = (time.perf_counter() - t0) * 1000 / max(1, len(descs))
         tiles, out, row = self.db.tiles, [], 0
         for d in descs:
-            s, i = scores[row: row + len(d)], ids[row: row + len(d)]
+            s, i = scores[row : row + len(d)], ids[row : row + len(d)]
             row += len(d)
             if len(d) == 1:
                 keep = i[0] >= 0

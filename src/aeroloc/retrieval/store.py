@@ -26,7 +26,7 @@ class DescriptorStore:
         self.meta_path = self.folder / "meta.json"
 
     @classmethod
-    def open_complete(cls, folder) -> "DescriptorStore":
+    def open_complete(cls, folder) -> DescriptorStore:
         folder = Path(folder)
         meta_path = folder / "meta.json"
         if not meta_path.is_file():
@@ -73,7 +73,7 @@ class DescriptorStore:
             if rows.ndim != 2 or rows.shape[1] != self.dim:
                 raise AerolocError(f"descriptor shape {rows.shape} does not match the store's dim {self.dim}")
             i = state["i"]
-            mm[i:i + len(rows)] = rows.astype(np.float16)
+            mm[i : i + len(rows)] = rows.astype(np.float16)
             mm.flush()
             state["i"] = i + len(rows)
             write_json_atomic(self.progress_path, {"n": self.n, "dim": self.dim, "done": state["i"]})
@@ -82,8 +82,14 @@ class DescriptorStore:
             if state["i"] != self.n:
                 raise AerolocError(f"{self.folder}: store has {state['i']} of {self.n} rows")
             mm.flush()
-            self.meta = {**self.meta, **(extra or {}), "n": self.n, "dim": self.dim, "dtype": "float16",
-                         "complete": True}
+            self.meta = {
+                **self.meta,
+                **(extra or {}),
+                "n": self.n,
+                "dim": self.dim,
+                "dtype": "float16",
+                "complete": True,
+            }
             write_json_atomic(self.meta_path, self.meta)
             self.progress_path.unlink(missing_ok=True)
 

@@ -50,8 +50,9 @@ class Prepared:
         return float(self.mask.mean()) if self.mask.size else 0.0
 
 
-def prepare(image: np.ndarray, mask: np.ndarray | None, upscale: float = 1.0, border_px: int = 0,
-            min_side: int = 16) -> Prepared:
+def prepare(
+    image: np.ndarray, mask: np.ndarray | None, upscale: float = 1.0, border_px: int = 0, min_side: int = 16
+) -> Prepared:
     """Check the input, upscale it and its mask, and erode the mask so no keypoint sits on a black border.
 
     ``mask`` None means "pixels that are not pure black" (black marks no-data in rendered tiles/orthophotos).
@@ -74,8 +75,10 @@ def prepare(image: np.ndarray, mask: np.ndarray | None, upscale: float = 1.0, bo
         raise AerolocError(f"upscale must be a positive factor, got {upscale}")
     ww, wh = max(1, round(w * upscale)), max(1, round(h * upscale))
     if min(ww, wh) < min_side:
-        raise AerolocError(f"image of {w}x{h} px is too small for local features (at least {min_side} px a side "
-                           f"after upscaling by {upscale})")
+        raise AerolocError(
+            f"image of {w}x{h} px is too small for local features (at least {min_side} px a side "
+            f"after upscaling by {upscale})"
+        )
     mask = mask.astype(np.uint8)
     if (ww, wh) != (w, h):
         image = resize(image, upscale, enlarge="cubic")
@@ -94,12 +97,17 @@ def inner_cap(prep: Prepared, max_keypoints: int, limit: int = 4) -> int:
 
 
 def empty_features(prep: Prepared, dim: int) -> Features:
-    return {"keypoints": np.zeros((0, 2), np.float32), "descriptors": np.zeros((0, dim), np.float32),
-            "scores": np.zeros((0,), np.float32), "image_size": np.array(prep.size, np.int64)}
+    return {
+        "keypoints": np.zeros((0, 2), np.float32),
+        "descriptors": np.zeros((0, dim), np.float32),
+        "scores": np.zeros((0,), np.float32),
+        "image_size": np.array(prep.size, np.int64),
+    }
 
 
-def finish(prep: Prepared, keypoints: np.ndarray, scores: np.ndarray, descriptors: np.ndarray,
-           max_keypoints: int | None) -> Features:
+def finish(
+    prep: Prepared, keypoints: np.ndarray, scores: np.ndarray, descriptors: np.ndarray, max_keypoints: int | None
+) -> Features:
     """Drop keypoints outside the valid mask, keep the ``max_keypoints`` best, map them to the original frame.
 
     ``keypoints`` are (N, 2) x, y in the pixel-edge frame of ``prep.image``.
@@ -118,8 +126,12 @@ def finish(prep: Prepared, keypoints: np.ndarray, scores: np.ndarray, descriptor
         order = order[:max_keypoints]
     sx, sy = prep.scale
     out = kp[order] / np.array([sx, sy])
-    return {"keypoints": out.astype(np.float32), "descriptors": np.ascontiguousarray(descriptors[order]),
-            "scores": scores[order], "image_size": np.array(prep.size, np.int64)}
+    return {
+        "keypoints": out.astype(np.float32),
+        "descriptors": np.ascontiguousarray(descriptors[order]),
+        "scores": scores[order],
+        "image_size": np.array(prep.size, np.int64),
+    }
 
 
 def load_strict(module, state: dict, source, allow_missing: tuple[str, ...] = (), ignore_unexpected: str = "") -> None:
@@ -133,13 +145,15 @@ def load_strict(module, state: dict, source, allow_missing: tuple[str, ...] = ()
     from aeroloc.core.errors import AerolocError
 
     own = module.state_dict()
-    missing = [k for k in own if k not in state and not k.endswith(allow_missing + ("num_batches_tracked",))]
+    missing = [k for k in own if k not in state and not k.endswith((*allow_missing, "num_batches_tracked"))]
     state = {k: v for k, v in state.items() if k in own or not (ignore_unexpected and re.search(ignore_unexpected, k))}
     unexpected = [k for k in state if k not in own]
     wrong = [k for k in own if k in state and tuple(own[k].shape) != tuple(state[k].shape)]
     if missing or unexpected or wrong:
-        raise AerolocError(f"{source}: checkpoint does not fit {type(module).__name__} (missing {missing[:3]}, "
-                           f"unexpected {unexpected[:3]}, wrong shape {wrong[:3]})")
+        raise AerolocError(
+            f"{source}: checkpoint does not fit {type(module).__name__} (missing {missing[:3]}, "
+            f"unexpected {unexpected[:3]}, wrong shape {wrong[:3]})"
+        )
     module.load_state_dict(state, strict=False)
 
 

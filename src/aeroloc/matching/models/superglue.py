@@ -9,18 +9,21 @@ Conv1d(k=1) [+ BatchNorm1d + ReLU] blocks.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.matching.models.base import Features, choose_weights, load_strict, merge_conf, to_device
 from aeroloc.core.weights import WeightSource, load_state_dict
+from aeroloc.matching.models.base import Features, choose_weights, load_strict, merge_conf, to_device
 
 _URL = "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_{}.pth"
 SUPERGLUE_WEIGHTS = {
-    kind: WeightSource(filename=f"superglue_{kind}.pth", url=_URL.format(kind),
-                       note="Magic Leap's SuperGlue (non-commercial licence)")
+    kind: WeightSource(
+        filename=f"superglue_{kind}.pth", url=_URL.format(kind), note="Magic Leap's SuperGlue (non-commercial licence)"
+    )
     for kind in ("outdoor", "indoor")
 }
 
@@ -28,7 +31,7 @@ SUPERGLUE_WEIGHTS = {
 def conv_mlp(channels: list[int]) -> nn.Sequential:
     """Pointwise MLP over B x C x N; BatchNorm + ReLU after every layer but the last."""
     layers: list[nn.Module] = []
-    for i, (cin, cout) in enumerate(zip(channels[:-1], channels[1:])):
+    for i, (cin, cout) in enumerate(itertools.pairwise(channels)):
         layers.append(nn.Conv1d(cin, cout, 1))
         if i < len(channels) - 2:
             layers += [nn.BatchNorm1d(cout), nn.ReLU()]
@@ -56,8 +59,7 @@ class MultiHeadAttention(nn.Module):
 
     def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
         b, dim, _ = x.shape
-        q, k, v = (p(t).reshape(b, dim // self.heads, self.heads, -1)
-                   for p, t in zip(self.proj, (x, source, source)))
+        q, k, v = (p(t).reshape(b, dim // self.heads, self.heads, -1) for p, t in zip(self.proj, (x, source, source)))
         attn = torch.softmax(torch.einsum("bdhn,bdhm->bhnm", q, k) / (dim // self.heads) ** 0.5, dim=-1)
         out = torch.einsum("bhnm,bdhm->bdhn", attn, v)
         return self.merge(out.reshape(b, dim, -1))
@@ -90,8 +92,13 @@ def log_optimal_transport(scores: torch.Tensor, dustbin: torch.Tensor, iters: in
     """Log-space Sinkhorn on the (M+1) x (N+1) score matrix augmented with dustbins. Row marginals are 1 per
     keypoint and N for the dustbin, columns 1 and M; the result is the log assignment scaled by M + N."""
     b, m, n = scores.shape
-    z = torch.cat([torch.cat([scores, dustbin.expand(b, m, 1)], 2),
-                   torch.cat([dustbin.expand(b, 1, n), dustbin.expand(b, 1, 1)], 2)], 1)
+    z = torch.cat(
+        [
+            torch.cat([scores, dustbin.expand(b, m, 1)], 2),
+            torch.cat([dustbin.expand(b, 1, n), dustbin.expand(b, 1, 1)], 2),
+        ],
+        1,
+    )
     log_norm = -torch.log(scores.new_tensor(float(m + n)))
     log_mu = torch.cat([log_norm.expand(m), (torch.log(scores.new_tensor(float(n))) + log_norm)[None]])
     log_nu = torch.cat([log_norm.expand(n), (torch.log(scores.new_tensor(float(m))) + log_norm)[None]])
@@ -107,8 +114,13 @@ class SuperGlue(nn.Module):
     """forward(kpts0, scores0, desc0, size0, kpts1, ...) -> (matches0: B x M index into image 1 or -1,
     matching scores B x M). kpts B x N x 2 in pixels, desc B x D x N, size (width, height)."""
 
-    default_conf = {"descriptor_dim": 256, "keypoint_encoder": [32, 64, 128, 256], "n_layers": 9,
-                    "sinkhorn_iterations": 100, "match_threshold": 0.2}
+    default_conf = {
+        "descriptor_dim": 256,
+        "keypoint_encoder": [32, 64, 128, 256],
+        "n_layers": 9,
+        "sinkhorn_iterations": 100,
+        "match_threshold": 0.2,
+    }
 
     def __init__(self, conf: dict | None = None):
         super().__init__()
@@ -152,8 +164,7 @@ class SuperGlueMatcher:
         self.conf = c = merge_conf(self, conf)
         self.device = to_device(device)
         path = choose_weights(SUPERGLUE_WEIGHTS, c["weights"], f"unknown SuperGlue weights '{c['weights']}'", weights)
-        self.net = SuperGlue({"sinkhorn_iterations": c["sinkhorn_iterations"],
-                              "match_threshold": c["match_threshold"]})
+        self.net = SuperGlue({"sinkhorn_iterations": c["sinkhorn_iterations"], "match_threshold": c["match_threshold"]})
         load_strict(self.net, load_state_dict(path), path)
         self.net.to(self.device).eval()
 

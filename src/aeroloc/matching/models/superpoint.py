@@ -12,17 +12,26 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from aeroloc.matching.models.base import Features, empty_features, finish, load_strict, merge_conf, prepare, to_device
 from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
+from aeroloc.matching.models.base import Features, empty_features, finish, load_strict, merge_conf, prepare, to_device
 
 SUPERPOINT_WEIGHTS = WeightSource(
     filename="superpoint_v1.pth",
     url="https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superpoint_v1.pth",
-    note="Magic Leap's SuperPoint (non-commercial licence); cvg/LightGlue's release has the same file")
+    note="Magic Leap's SuperPoint (non-commercial licence); cvg/LightGlue's release has the same file",
+)
 
 # encoder: (name, in, out); every conv is 3x3, stride 1, padding 1; 2x2 max-pooling after conv1b/2b/3b
-_ENCODER = [("conv1a", 1, 64), ("conv1b", 64, 64), ("conv2a", 64, 64), ("conv2b", 64, 64),
-            ("conv3a", 64, 128), ("conv3b", 128, 128), ("conv4a", 128, 128), ("conv4b", 128, 128)]
+_ENCODER = [
+    ("conv1a", 1, 64),
+    ("conv1b", 64, 64),
+    ("conv2a", 64, 64),
+    ("conv2b", 64, 64),
+    ("conv3a", 64, 128),
+    ("conv3b", 128, 128),
+    ("conv4a", 128, 128),
+    ("conv4b", 128, 128),
+]
 CELL = 8
 
 
@@ -77,8 +86,14 @@ class SuperPointExtractor:
 
     name = "superpoint"
     dim = 256
-    default_conf = {"max_keypoints": 2048, "detection_threshold": 0.0005, "nms_radius": 4, "remove_borders": 4,
-                    "upscale": 1.0, "border_px": 4}
+    default_conf = {
+        "max_keypoints": 2048,
+        "detection_threshold": 0.0005,
+        "nms_radius": 4,
+        "remove_borders": 4,
+        "upscale": 1.0,
+        "border_px": 4,
+    }
     weight_source = SUPERPOINT_WEIGHTS
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):

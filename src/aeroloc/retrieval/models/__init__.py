@@ -7,7 +7,6 @@ does not import every architecture. ``build_method`` creates the model, loads it
 
 from __future__ import annotations
 
-
 from aeroloc.core.registry import lazy_class
 
 METHODS: dict[str, str] = {

@@ -25,9 +25,9 @@ import torch
 import torch.nn.functional as F
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 from aeroloc.retrieval.models.base import GlobalModel
 from aeroloc.retrieval.models.dinov2 import ARCHS, DinoV2, dinov2_weights
-from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 
 ANYLOC_RELEASE = "https://github.com/AnyLoc/DINO/releases/download/v1"
 DOMAINS = ("indoor", "urban", "aerial", "structured", "unstructured", "global")  # hubconf.py AVAIL_VLADCC_FILES
@@ -38,8 +38,9 @@ def vocabulary_weights(domain: str = "aerial", layer: int = 31, num_clusters: in
     if domain not in DOMAINS:
         raise AerolocError(f"unknown AnyLoc domain '{domain}'; choose one of: {', '.join(DOMAINS)}")
     name = f"dinov2_vitg14_l{layer}_value_c{num_clusters}_{domain}_c_centers.pt"
-    return WeightSource(filename=name, url=f"{ANYLOC_RELEASE}/{name}",
-                        note=f"AnyLoc VLAD vocabulary, domain '{domain}'")
+    return WeightSource(
+        filename=name, url=f"{ANYLOC_RELEASE}/{name}", note=f"AnyLoc VLAD vocabulary, domain '{domain}'"
+    )
 
 
 def hard_vlad(desc: torch.Tensor, centers: torch.Tensor) -> torch.Tensor:
@@ -112,10 +113,14 @@ class AnyLoc(GlobalModel):
             keep = len(self.backbone.blocks)
             missing_tail = [i for i in range(keep, self.full_depth) if f"blocks.{i}.norm1.weight" not in state]
             if missing_tail:
-                raise AerolocError(f"{source}: not a {self.full_depth}-block DINOv2 ViT-G/14 checkpoint "
-                                   f"(no blocks.{missing_tail[0]})")
-            state = {f"backbone.{k}": v for k, v in state.items()
-                     if not (k.startswith("blocks.") and int(k.split(".")[1]) >= keep)}
+                raise AerolocError(
+                    f"{source}: not a {self.full_depth}-block DINOv2 ViT-G/14 checkpoint (no blocks.{missing_tail[0]})"
+                )
+            state = {
+                f"backbone.{k}": v
+                for k, v in state.items()
+                if not (k.startswith("blocks.") and int(k.split(".")[1]) >= keep)
+            }
             state["c_centers"] = self.c_centers
         super().load_checkpoint(state, source)
 

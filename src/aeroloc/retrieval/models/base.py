@@ -9,7 +9,7 @@ state lives in buffers, so ``state_dict()`` carries it into the database.
 
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 import torch
@@ -38,8 +38,11 @@ class GlobalModel(torch.nn.Module):
         """Find the checkpoint (see :mod:`aeroloc.core.weights`) and load it strictly."""
         if self.weight_source is None and explicit is None:
             return
-        path = resolve_weights(self.weight_source, explicit) if self.weight_source else resolve_weights(
-            WeightSource(filename=str(explicit)), explicit)
+        path = (
+            resolve_weights(self.weight_source, explicit)
+            if self.weight_source
+            else resolve_weights(WeightSource(filename=str(explicit)), explicit)
+        )
         self.load_checkpoint(load_state_dict(path, key=self.checkpoint_key), source=path)
 
     def load_checkpoint(self, state: dict, source="checkpoint") -> None:
@@ -53,7 +56,8 @@ class GlobalModel(torch.nn.Module):
         if missing or unexpected or wrong:
             raise AerolocError(
                 f"{source}: checkpoint does not fit {type(self).__name__} "
-                f"(missing {missing[:3]}, unexpected {unexpected[:3]}, wrong shape {wrong[:3]})")
+                f"(missing {missing[:3]}, unexpected {unexpected[:3]}, wrong shape {wrong[:3]})"
+            )
         self.load_state_dict(state, strict=True)
 
     # -- preprocessing ------------------------------------------------------------------------------

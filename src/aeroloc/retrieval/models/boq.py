@@ -21,9 +21,9 @@ import torchvision
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource
 from aeroloc.retrieval.models.base import GlobalModel, resize_normalize
 from aeroloc.retrieval.models.cosplace import as_int
-from aeroloc.core.weights import WeightSource
 
 URL = "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/resnet50_16384.pth"
 
@@ -45,8 +45,9 @@ class BoQBlock(nn.Module):
 
     def __init__(self, in_dim: int, num_queries: int, nheads: int):
         super().__init__()
-        self.encoder = nn.TransformerEncoderLayer(d_model=in_dim, nhead=nheads, dim_feedforward=4 * in_dim,
-                                                  batch_first=True, dropout=0.0)
+        self.encoder = nn.TransformerEncoderLayer(
+            d_model=in_dim, nhead=nheads, dim_feedforward=4 * in_dim, batch_first=True, dropout=0.0
+        )
         self.queries = nn.Parameter(torch.randn(1, num_queries, in_dim))
         self.self_attn = nn.MultiheadAttention(in_dim, num_heads=nheads, batch_first=True)
         self.norm_q = nn.LayerNorm(in_dim)
@@ -67,7 +68,8 @@ class BoQAggregator(nn.Module):
         self.proj_c = nn.Conv2d(in_channels, proj_channels, kernel_size=3, padding=1)
         self.norm_input = nn.LayerNorm(proj_channels)
         self.boqs = nn.ModuleList(
-            [BoQBlock(proj_channels, num_queries, nheads=proj_channels // 64) for _ in range(num_layers)])
+            [BoQBlock(proj_channels, num_queries, nheads=proj_channels // 64) for _ in range(num_layers)]
+        )
         self.fc = nn.Linear(num_layers * num_queries, row_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -97,14 +99,15 @@ class BoQModel(GlobalModel):
     def __init__(self, conf: dict | None = None):
         super().__init__(conf)
         if self.conf["backbone"] != "ResNet50" or as_int(self.conf["dim"]) != 16384:
-            raise AerolocError(f"BoQ here has the ResNet50 model with dim 16384 only (got backbone="
-                               f"{self.conf['backbone']!r}, dim={self.conf['dim']!r}); the DINOv2 variant is "
-                               "a separate method")
+            raise AerolocError(
+                f"BoQ here has the ResNet50 model with dim 16384 only (got backbone="
+                f"{self.conf['backbone']!r}, dim={self.conf['dim']!r}); the DINOv2 variant is "
+                "a separate method"
+            )
         self.dim = 16384
         self.weight_source = WeightSource(filename="boq_resnet50_16384.pth", url=URL)
         self.backbone = ResNet50Layer3()
-        self.aggregator = BoQAggregator(in_channels=1024, proj_channels=512, num_queries=64, num_layers=2,
-                                        row_dim=32)
+        self.aggregator = BoQAggregator(in_channels=1024, proj_channels=512, num_queries=64, num_layers=2, row_dim=32)
 
     def load_checkpoint(self, state: dict, source="checkpoint") -> None:
         renamed = {}

@@ -16,8 +16,8 @@ import torchvision
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.retrieval.models.base import GlobalModel
 from aeroloc.core.weights import WeightSource
+from aeroloc.retrieval.models.base import GlobalModel
 
 # channels of the last conv layer (the GeM input), as in the authors' CHANNELS_NUM_IN_LAST_CONV
 LAST_CONV_CHANNELS = {"ResNet18": 512, "ResNet50": 2048, "ResNet101": 2048, "ResNet152": 2048, "VGG16": 512}
@@ -92,14 +92,17 @@ class CosPlace(GlobalModel):
         backbone, dim = self.conf["backbone"], as_int(self.conf["dim"])
         if backbone not in self.AVAILABLE or dim not in self.AVAILABLE[backbone]:
             pairs = "; ".join(f"{b}: {', '.join(map(str, d))}" for b, d in self.AVAILABLE.items())
-            raise AerolocError(f"{self.NAME} has no trained model for backbone={backbone!r} dim={self.conf['dim']!r} "
-                               f"(available: {pairs})")
+            raise AerolocError(
+                f"{self.NAME} has no trained model for backbone={backbone!r} dim={self.conf['dim']!r} "
+                f"(available: {pairs})"
+            )
         self.dim = dim
         url = self.URL.format(backbone=backbone, dim=dim)
         self.weight_source = WeightSource(filename=url.rsplit("/", 1)[1], url=url)
         self.backbone = cnn_backbone(backbone)
         self.aggregation = nn.Sequential(
-            L2Norm(), GeM(), Flatten(), nn.Linear(LAST_CONV_CHANNELS[backbone], dim), L2Norm())
+            L2Norm(), GeM(), Flatten(), nn.Linear(LAST_CONV_CHANNELS[backbone], dim), L2Norm()
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: B x 3 x H x W (ImageNet-normalised) -> B x dim, unit L2 norm."""

@@ -22,7 +22,7 @@ B x D x h x w). This class does the rest:
 from __future__ import annotations
 
 import math
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 import torch
@@ -62,8 +62,9 @@ class DenseVLAD(GlobalModel):
         c = self.conf
         unknown = set(c) - set(self.default_conf)
         if unknown:
-            raise AerolocError(f"{type(self).__name__}: unknown option(s) {sorted(unknown)}; "
-                               f"known: {sorted(self.default_conf)}")
+            raise AerolocError(
+                f"{type(self).__name__}: unknown option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}"
+            )
         if not (isinstance(c["n_clusters"], int) and c["n_clusters"] >= 2):
             raise AerolocError(f"n_clusters must be an integer >= 2, got {c['n_clusters']}")
         if c["photometric"] not in PHOTOMETRIC:
@@ -121,8 +122,9 @@ class DenseVLAD(GlobalModel):
             nh, nw = round(h * f), round(w * f)
         nh, nw = max(m, nh // m * m), max(m, nw // m * m)
         if (nh, nw) != (h, w):
-            t = F.interpolate(t[None], size=(nh, nw), mode="bilinear", align_corners=False,
-                              antialias=True)[0].clamp_(0, 1)
+            t = F.interpolate(t[None], size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)[0].clamp_(
+                0, 1
+            )
         return t
 
     # -- dense descriptors of every rotation / scale ------------------------------------------------
@@ -159,13 +161,15 @@ class DenseVLAD(GlobalModel):
     # -- aggregation ------------------------------------------------------------------------------------
     def _check_fitted(self):
         if not bool(self.fitted):
-            raise AerolocError(f"{type(self).__name__}: the VLAD vocabulary is not fitted; run fit(tiles) "
-                               "(aeroloc build does it) or load a fitted state_dict")
+            raise AerolocError(
+                f"{type(self).__name__}: the VLAD vocabulary is not fitted; run fit(tiles) "
+                "(aeroloc build does it) or load a fitted state_dict"
+            )
 
     def assign(self, desc: torch.Tensor) -> torch.Tensor:
         """B x N x D -> B x N x K assignment weights (one-hot for hard assignment)."""
         c = self.centroids
-        d2 = (desc.pow(2).sum(-1, keepdim=True) - 2 * desc @ c.T + c.pow(2).sum(-1)[None, None])
+        d2 = desc.pow(2).sum(-1, keepdim=True) - 2 * desc @ c.T + c.pow(2).sum(-1)[None, None]
         if self.conf["assignment"] == "soft":
             return torch.softmax(-d2 / self.conf["soft_temperature"], dim=-1)
         return F.one_hot(d2.argmin(-1), c.shape[0]).to(desc.dtype)
@@ -241,13 +245,21 @@ class DenseVLAD(GlobalModel):
             mean = xt.mean(0)
             evals, evecs = torch.linalg.eigh((xt - mean).T @ (xt - mean) / len(xt))
             self.local_mean.copy_(mean.float())
-            self.local_proj.copy_(evecs[:, evals.argsort(descending=True)[:c["local_pca"]]].T.float())
+            self.local_proj.copy_(evecs[:, evals.argsort(descending=True)[: c["local_pca"]]].T.float())
             x = self.reduce(torch.from_numpy(x).to(device)).cpu().numpy()
         if len(x) < k:
-            raise AerolocError(f"{type(self).__name__}.fit: {len(x)} descriptors from {n_images} image(s) are "
-                               f"too few for {k} clusters; use more tiles or fewer clusters")
-        km = faiss.Kmeans(x.shape[1], k, niter=c["kmeans_iters"], seed=int(c["seed"]), verbose=False,
-                          max_points_per_centroid=max(256, math.ceil(len(x) / k)))
+            raise AerolocError(
+                f"{type(self).__name__}.fit: {len(x)} descriptors from {n_images} image(s) are "
+                f"too few for {k} clusters; use more tiles or fewer clusters"
+            )
+        km = faiss.Kmeans(
+            x.shape[1],
+            k,
+            niter=c["kmeans_iters"],
+            seed=int(c["seed"]),
+            verbose=False,
+            max_points_per_centroid=max(256, math.ceil(len(x) / k)),
+        )
         # one OpenMP thread: beside torch's threads on a busy machine, faiss's spinning threads made k-means
         # 10x slower (15 s instead of 1.5 s for 60k x 64-d points, 128 clusters)
         threads = faiss.omp_get_max_threads()
@@ -258,7 +270,7 @@ class DenseVLAD(GlobalModel):
             faiss.omp_set_num_threads(threads)
         self.centroids.copy_(torch.from_numpy(km.centroids).to(device))
         self.fitted.fill_(True)
-        report = {"n_images": n_images, "n_descriptors": int(len(x)), "kmeans_obj": float(km.obj[-1])}
+        report = {"n_images": n_images, "n_descriptors": len(x), "kmeans_obj": float(km.obj[-1])}
         if c["pca_dim"]:
             vl = torch.cat([self.aggregate(d[None].float().to(device), w[None].to(device)) for d, w in kept])
             self._fit_pca(vl.cpu().double())
@@ -267,8 +279,7 @@ class DenseVLAD(GlobalModel):
     def _fit_pca(self, v: torch.Tensor) -> None:
         n, p = len(v), self.conf["pca_dim"]
         if p > n - 1:
-            raise AerolocError(f"{type(self).__name__}.fit: pca_dim {p} needs at least {p + 1} fitting images, "
-                               f"got {n}")
+            raise AerolocError(f"{type(self).__name__}.fit: pca_dim {p} needs at least {p + 1} fitting images, got {n}")
         mean = v.mean(0)
         # eigenvectors of the covariance through the small n x n Gram matrix (n << vlad_dim)
         xc = v - mean

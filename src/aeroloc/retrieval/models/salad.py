@@ -20,13 +20,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource
 from aeroloc.retrieval.models.base import GlobalModel
 from aeroloc.retrieval.models.dinov2 import DinoV2FeatureMap
-from aeroloc.core.weights import WeightSource
 
 SALAD_WEIGHTS = WeightSource(
-    filename="dino_salad.ckpt", url="https://github.com/serizba/salad/releases/download/v1.0.0/dino_salad.ckpt",
-    note="DINOv2-B SALAD trained on GSV-Cities, released by the authors (torch.hub serizba/salad)")
+    filename="dino_salad.ckpt",
+    url="https://github.com/serizba/salad/releases/download/v1.0.0/dino_salad.ckpt",
+    note="DINOv2-B SALAD trained on GSV-Cities, released by the authors (torch.hub serizba/salad)",
+)
 
 
 def log_optimal_transport(scores: torch.Tensor, dustbin: torch.Tensor, iters: int = 3) -> torch.Tensor:
@@ -57,15 +59,23 @@ class SALADAggregator(nn.Module):
     dropout, an identity at inference) so checkpoint keys line up: ``token_features.{0,2}``,
     ``cluster_features.{0,3}``, ``score.{0,3}``, ``dust_bin``."""
 
-    def __init__(self, num_channels: int = 768, num_clusters: int = 64, cluster_dim: int = 128,
-                 token_dim: int = 256, mlp_dim: int = 512):
+    def __init__(
+        self,
+        num_channels: int = 768,
+        num_clusters: int = 64,
+        cluster_dim: int = 128,
+        token_dim: int = 256,
+        mlp_dim: int = 512,
+    ):
         super().__init__()
         self.num_clusters, self.cluster_dim, self.token_dim = num_clusters, cluster_dim, token_dim
         self.token_features = nn.Sequential(nn.Linear(num_channels, mlp_dim), nn.ReLU(), nn.Linear(mlp_dim, token_dim))
-        self.cluster_features = nn.Sequential(nn.Conv2d(num_channels, mlp_dim, 1), nn.Identity(), nn.ReLU(),
-                                              nn.Conv2d(mlp_dim, cluster_dim, 1))
-        self.score = nn.Sequential(nn.Conv2d(num_channels, mlp_dim, 1), nn.Identity(), nn.ReLU(),
-                                   nn.Conv2d(mlp_dim, num_clusters, 1))
+        self.cluster_features = nn.Sequential(
+            nn.Conv2d(num_channels, mlp_dim, 1), nn.Identity(), nn.ReLU(), nn.Conv2d(mlp_dim, cluster_dim, 1)
+        )
+        self.score = nn.Sequential(
+            nn.Conv2d(num_channels, mlp_dim, 1), nn.Identity(), nn.ReLU(), nn.Conv2d(mlp_dim, num_clusters, 1)
+        )
         self.dust_bin = nn.Parameter(torch.tensor(1.0))
 
     @property
@@ -78,8 +88,9 @@ class SALADAggregator(nn.Module):
         feats = self.cluster_features(fmap).flatten(2)  # B x l x n
         plan = log_optimal_transport(self.score(fmap).flatten(2), self.dust_bin).exp()[:, :-1]  # B x m x n
         clusters = torch.einsum("bln,bmn->blm", feats, plan)  # B x l x m (the authors' flatten order)
-        desc = torch.cat([F.normalize(self.token_features(cls), dim=-1),
-                          F.normalize(clusters, dim=1).flatten(1)], dim=-1)
+        desc = torch.cat(
+            [F.normalize(self.token_features(cls), dim=-1), F.normalize(clusters, dim=1).flatten(1)], dim=-1
+        )
         return F.normalize(desc, dim=-1)
 
 

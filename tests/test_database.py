@@ -79,6 +79,13 @@ def test_descriptors_are_float16_unit_vectors_on_disk(naip_db):
     assert len(np.unique(raw, axis=0)) == 35  # 35 different tiles, 35 different descriptors
 
 
+def test_the_fitted_vocabulary_is_a_plain_state_dict(naip_db):
+    import torch
+
+    state = torch.load(_global_dir(naip_db) / "model.pt", map_location="cpu", weights_only=True)  # no pickled code
+    assert state and all(isinstance(v, torch.Tensor) for v in state.values())
+
+
 def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_path, monkeypatch):
     import aeroloc.retrieval.descriptors
 
@@ -111,7 +118,7 @@ def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_p
     monkeypatch.setattr(aeroloc.retrieval.descriptors, "iter_descriptors", counts)
     rep = build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False)
     assert seen == [35, 27]  # the resumed run described only the 27 tiles left
-    assert not rep["cached"] and rep["fit_s"] == 0.0  # the fitted vocabulary was reused, not refitted
+    assert not rep.cached and rep.fit_s == 0.0  # the fitted vocabulary was reused, not refitted
     resumed = np.load(gdirs[0] / "descriptors.npy")
     # the reference: an uninterrupted build with the same batches (batch-size-dependent float noise can flip a
     # hard VLAD assignment near a cluster boundary, so only equal batching makes equal descriptors)

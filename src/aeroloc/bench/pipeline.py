@@ -136,13 +136,13 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
         total_ms_per_query=total_ms / n,
         localize_total_s=total_ms / 1000,
         tiles_s=t_tiles,
-        build_descriptors_s=grep.get("extract_s", 0.0),
-        fit_s=grep.get("fit_s", 0.0),
+        build_descriptors_s=grep.extract_s,
+        fit_s=grep.fit_s,
     )
     memory = {
-        "descriptor_bytes_per_tile": grep["bytes_per_tile"],
-        "local_bytes_per_tile": lrep["bytes_per_tile"] if lrep else 0.0,
-        "index_bytes": (folder / grep["dir"] / "index.faiss").stat().st_size,
+        "descriptor_bytes_per_tile": grep.bytes_per_tile,
+        "local_bytes_per_tile": lrep.bytes_per_tile if lrep else 0.0,
+        "index_bytes": grep.index_bytes,
         "tile_image_bytes": tinfo.get("image_bytes"),
         "peak_rss_mb": peak,
     }

@@ -39,20 +39,20 @@ def run(args) -> int:
     rep = build_global(
         db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index, args.half
     )
-    if rep["cached"]:
-        print(f"descriptors {args.method}: cached ({rep['dim']}-d, {rep['bytes_per_tile'] / 1024:.1f} KB/tile)")
+    if rep.cached:
+        print(f"descriptors {args.method}: cached ({rep.dim}-d, {rep.bytes_per_tile / 1024:.1f} KB/tile)")
     else:
         print(
-            f"descriptors {args.method}: {rep['n_tiles']} tiles, {rep['dim']}-d, {rep['tiles_per_s']:.1f} tiles/s, "
-            f"fit {rep['fit_s']:.1f} s, index {rep['index_s'] * 1000:.0f} ms, "
-            f"{rep['bytes_per_tile'] / 1024:.1f} KB/tile"
+            f"descriptors {args.method}: {rep.n_tiles} tiles, {rep.dim}-d, {rep.tiles_per_s:.1f} tiles/s, "
+            f"fit {rep.fit_s:.1f} s, index {rep.index_s * 1000:.0f} ms, "
+            f"{rep.bytes_per_tile / 1024:.1f} KB/tile"
         )
     if args.local:
         from aeroloc.matching.features import build_local
 
         lrep = build_local(db, args.local, device)
         print(
-            f"local features {args.local}: {lrep['n_tiles']} tiles, {lrep['bytes_per_tile'] / 1024:.1f} KB/tile"
-            + (" (cached)" if lrep.get("cached") else f", {lrep['tiles_per_s']:.1f} tiles/s")
+            f"local features {args.local}: {lrep.n_tiles} tiles, {lrep.bytes_per_tile / 1024:.1f} KB/tile"
+            + (" (cached)" if lrep.cached else f", {lrep.tiles_per_s:.1f} tiles/s")
         )
     return 0

@@ -69,8 +69,7 @@ def run(args) -> int:
         g = build_global(db, DEFAULT_METHOD, device=device)
         build_local(db, rerank, device)
         print(
-            f"database: {DEFAULT_METHOD} {g['dim']}-d descriptors + {rerank} features "
-            f"in {time.perf_counter() - t0:.1f} s"
+            f"database: {DEFAULT_METHOD} {g.dim}-d descriptors + {rerank} features in {time.perf_counter() - t0:.1f} s"
         )
         queries = load_queries(data / q_rel)[: args.limit]
         csv_path = out / f"{db_dir.name}-results.csv"

@@ -10,6 +10,7 @@ Query rotations (multiples of 90°) let upright-only matchers handle photos take
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -82,7 +83,18 @@ def store_for(db, name: str, conf: dict) -> FeatureStore:
     return FeatureStore(d / "features.h5")
 
 
-def build_local(db, name: str, device="cpu", conf: dict | None = None, progress: bool = True) -> dict:
+@dataclass(frozen=True)
+class LocalBuildReport:
+    """What :func:`build_local` did: the store's file (``path``) and size; ``tiles_per_s`` is 0 on a cache hit."""
+
+    n_tiles: int
+    cached: bool
+    bytes_per_tile: float
+    path: str
+    tiles_per_s: float = 0.0
+
+
+def build_local(db, name: str, device="cpu", conf: dict | None = None, progress: bool = True) -> LocalBuildReport:
     """Precompute the local features of every tile for re-ranker ``name`` (resumable: done tiles are kept)."""
     from tqdm import tqdm
 
@@ -93,12 +105,7 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     done = store.names()
     todo = [t for t in db.tiles if t.id not in done]
     if not todo:
-        return {
-            "n_tiles": len(db.tiles),
-            "cached": True,
-            "bytes_per_tile": store.bytes_per_item(),
-            "path": str(store.path),
-        }
+        return LocalBuildReport(len(db.tiles), cached=True, bytes_per_tile=store.bytes_per_item(), path=str(store.path))
     extractor, _ = build_reranker(rconf["features"], device, feature_overrides(rconf))
     t0 = time.perf_counter()
     batch = {}
@@ -110,10 +117,10 @@ def build_local(db, name: str, device="cpu", conf: dict | None = None, progress:
     if batch:
         store.write_many(batch)
     dt = time.perf_counter() - t0
-    return {
-        "n_tiles": len(db.tiles),
-        "cached": False,
-        "tiles_per_s": len(todo) / max(dt, 1e-9),
-        "bytes_per_tile": store.bytes_per_item(),
-        "path": str(store.path),
-    }
+    return LocalBuildReport(
+        len(db.tiles),
+        cached=False,
+        bytes_per_tile=store.bytes_per_item(),
+        path=str(store.path),
+        tiles_per_s=len(todo) / max(dt, 1e-9),
+    )

@@ -5,6 +5,24 @@ from __future__ import annotations
 from aeroloc.commands.tiles import add_map_grid_arguments, summary
 
 
+def add_trust_argument(p) -> None:
+    """``--trust-checkpoint PATH`` (repeatable), for the commands that load model weights."""
+    p.add_argument(
+        "--trust-checkpoint",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="load this checkpoint even though it holds pickled Python objects (which can run code: only for "
+        "files from a source you trust); repeatable, or list them in $AEROLOC_TRUST_CHECKPOINTS",
+    )
+
+
+def trust_from_args(args) -> None:
+    from aeroloc.core.weights import trust_checkpoints
+
+    trust_checkpoints(getattr(args, "trust_checkpoint", None) or [])
+
+
 def add_arguments(p):
     from aeroloc.retrieval.models import DEFAULT_METHOD
 
@@ -14,6 +32,7 @@ def add_arguments(p):
         "--method", default=DEFAULT_METHOD, help="retrieval method (default %(default)s; see 'aeroloc methods')"
     )
     p.add_argument("--weights", help="explicit weights file for the method")
+    add_trust_argument(p)
     p.add_argument("--local", help="also precompute local features of this re-ranker (e.g. xfeat-lighterglue)")
     p.add_argument("--index", default="Flat", help="faiss factory string (default Flat; e.g. HNSW32, IVF1024,PQ32)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
@@ -32,6 +51,7 @@ def run(args) -> int:
     method_class(args.method)  # unknown names fail now, not after the tiles (or the descriptors) are built
     if args.local:
         rerank_conf(args.local)
+    trust_from_args(args)
     device = pick_device(args.device)
     info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
     print(summary(info, args.out))

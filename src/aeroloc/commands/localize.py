@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from aeroloc.commands.build import add_trust_argument, trust_from_args
+
 # --refine-window: an accepted match whose query reaches 15 % of a tile side beyond the tile is re-matched on the map
 # (NAIP dev, 1280 m tiles: 57 windows for 120 queries; Georef@10 m 0.82 -> 0.85, median error 4.7 -> 3.9 m)
 REFINE_OUTSIDE = 0.15
@@ -52,6 +54,7 @@ def add_arguments(p):
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
+    add_trust_argument(p)
 
 
 def run(args) -> int:
@@ -72,6 +75,7 @@ def run(args) -> int:
     rerank = None if args.rerank in ("none", "") else args.rerank
     if rerank:
         rerank_conf(rerank)  # an unknown name fails before the database and queries are read
+    trust_from_args(args)
     db = Database(args.db)
     queries = load_queries(args.queries)
     conf = {"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None

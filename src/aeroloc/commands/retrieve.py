@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from aeroloc.commands.build import add_trust_argument, trust_from_args
 from aeroloc.core.io import write_csv_atomic
 
 
@@ -20,6 +21,7 @@ def add_arguments(p):
     )
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--device", default="auto")
+    add_trust_argument(p)
 
 
 def run(args) -> int:
@@ -36,6 +38,7 @@ def run(args) -> int:
         raise AerolocError(f"--top-n must be >= 1, got {args.top_n}")
     if args.rotations < 1:  # before any work: the database and queries are not read
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
+    trust_from_args(args)
     db = Database(args.db)
     queries = load_queries(args.queries)
     retriever = Retriever(db, args.method, pick_device(args.device), args.rotations)

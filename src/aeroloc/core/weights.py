@@ -7,12 +7,18 @@
 5. a download from the authors' URL into the cache (atomic: temp file + rename).
 
 When every source fails, :class:`WeightsNotFound` names the URL and the exact path to put the file at.
+
+Checkpoints are read with ``torch.load(weights_only=True)``: tensors, containers and plain values only, never code.
+A file that needs pickled Python objects is refused unless it is trusted by name, with ``--trust-checkpoint PATH``
+(:func:`trust_checkpoints`) or ``$AEROLOC_TRUST_CHECKPOINTS`` (paths separated by ``os.pathsep``).
 """
 
 from __future__ import annotations
 
 import importlib.util
 import os
+import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,15 +105,59 @@ def resolve_weights(src: WeightSource, explicit: str | os.PathLike | None = None
     )
 
 
-def load_state_dict(path: Path, key: str | None = None) -> dict:
-    """Load a checkpoint on the CPU; ``key`` picks a nested dict (e.g. 'state_dict'); strips 'module.'."""
+TRUST_ENV = "AEROLOC_TRUST_CHECKPOINTS"
+_TRUSTED: set[Path] = set()  # --trust-checkpoint paths of this process, resolved
+
+
+def _resolved(path: str | os.PathLike) -> Path:
+    return Path(path).expanduser().resolve()
+
+
+def trust_checkpoints(paths) -> None:
+    """Let :func:`load_checkpoint` unpickle these files (``weights_only=False``) in this process."""
+    _TRUSTED.update(_resolved(p) for p in paths or ())
+
+
+def is_trusted(path: str | os.PathLike) -> bool:
+    """Whether ``path`` was trusted by name (:func:`trust_checkpoints` or ``$AEROLOC_TRUST_CHECKPOINTS``)."""
+    env = {_resolved(p) for p in os.environ.get(TRUST_ENV, "").split(os.pathsep) if p.strip()}
+    return _resolved(path) in _TRUSTED | env
+
+
+def _torch_load(path, weights_only: bool, mmap: bool):
     import torch
 
-    try:
+    if mmap:
         try:  # memory-map large zip checkpoints (ViT-G is 4.5 GB) instead of reading them twice
-            obj = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+            return torch.load(path, map_location="cpu", weights_only=weights_only, mmap=True)
         except RuntimeError:  # legacy (non-zip) files can't be memory-mapped
-            obj = torch.load(path, map_location="cpu", weights_only=False)
+            pass
+    return torch.load(path, map_location="cpu", weights_only=weights_only)
+
+
+def load_checkpoint(path: str | os.PathLike, mmap: bool = False):
+    """``torch.load`` on the CPU with ``weights_only=True``; a checkpoint that holds pickled Python objects is
+    refused with an :class:`AerolocError` naming the file, and loaded in full only when it is trusted by name."""
+    try:
+        return _torch_load(path, weights_only=True, mmap=mmap)
+    except pickle.UnpicklingError as exc:  # torch's weights-only unpickler met a global it does not allow
+        if not is_trusted(path):
+            found = re.search(r"GLOBAL (\S+)", str(exc))
+            what = f"a pickled {found.group(1)}" if found else "pickled Python objects"
+            raise AerolocError(
+                f"{path}: checkpoint holds {what}, which loads only by running code from the file; refused. "
+                f"If you trust this file, pass --trust-checkpoint {path} "
+                f"(or add it to ${TRUST_ENV}, paths separated by '{os.pathsep}')"
+            ) from None
+    return _torch_load(path, weights_only=False, mmap=mmap)
+
+
+def load_state_dict(path: Path, key: str | None = None) -> dict:
+    """Load a checkpoint on the CPU; ``key`` picks a nested dict (e.g. 'state_dict'); strips 'module.'."""
+    try:
+        obj = load_checkpoint(path, mmap=True)
+    except AerolocError:
+        raise
     except Exception as exc:
         raise AerolocError(f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__}: {exc})") from None
     if key is not None and isinstance(obj, dict) and key in obj:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -43,27 +44,31 @@ def _check_axis(starts, length, side, step):
     assert len(starts) == tile_count(length, side, step)
 
 
-def _check_grid(m, zoom, overlap, base):
+def _check_grid(m, zoom, overlap, base, base_h=None):
+    """``base`` x ``base_h`` (default square) is the zoom-1 tile; sides and steps are per axis."""
+    base_h = base if base_h is None else base_h
     g = TileGrid(m, zoom, overlap)
-    side = round(base / zoom)
-    step = round(side * (1 - overlap))
-    assert (g.side, g.step) == (side, step)
-    _check_axis(g.cols, m.width, side, step)
-    _check_axis(g.rows, m.height, side, step)
+    w, h = round(base / zoom), round(base_h / zoom)
+    sx, sy = round(w * (1 - overlap)), round(h * (1 - overlap))
+    assert (g.tile_w, g.tile_h, g.step_x, g.step_y) == (w, h, sx, sy)
+    if w == h:
+        assert (g.side, g.step) == (w, sx)
+    _check_axis(g.cols, m.width, w, sx)
+    _check_axis(g.rows, m.height, h, sy)
     tiles = list(g)
-    assert len(tiles) == len(g) == tile_count(m.width, side, step) * tile_count(m.height, side, step)
+    assert len(tiles) == len(g) == tile_count(m.width, w, sx) * tile_count(m.height, h, sy)
     assert len({t.id for t in tiles}) == len(tiles)
     covered = np.zeros((m.height, m.width), np.int32)
     for t in tiles:
-        assert (t.width, t.height) == (side, side)
-        assert t.col + side <= m.width and t.row + side <= m.height
-        covered[t.row : t.row + side, t.col : t.col + side] += 1
+        assert (t.width, t.height) == (w, h)
+        assert t.col + w <= m.width and t.row + h <= m.height
+        covered[t.row : t.row + h, t.col : t.col + w] += 1
     assert covered.min() >= 1  # every map pixel is covered
     # corner coordinates are the map's pixel edges (vectorised reference through the map's georeference)
     cols = np.array([t.col for t in tiles], float)
     rows = np.array([t.row for t in tiles], float)
     tl_lat, tl_lon = m.pixel_to_latlon(cols, rows)
-    br_lat, br_lon = m.pixel_to_latlon(cols + side, rows + side)
+    br_lat, br_lon = m.pixel_to_latlon(cols + w, rows + h)
     got = np.array([[*t.corners_latlon[0], *t.corners_latlon[1]] for t in tiles])
     np.testing.assert_allclose(got, np.stack([tl_lat, tl_lon, br_lat, br_lon], 1), atol=1e-11, rtol=0)
     # outer edges: the first tile starts at the map corner, the last ends at the opposite one
@@ -83,12 +88,15 @@ def test_grid_invariants_on_naip(naip, zoom, overlap):
 @pytest.mark.parametrize("overlap", OVERLAPS)
 def test_grid_invariants_on_seed_folder(seed, zoom, overlap):
     s, m = seed
-    assert m.base_tile_px == 64
-    g, tiles = _check_grid(m, zoom, overlap, 64)
-    if zoom == 1 and overlap == 0:  # zoom 1 without overlap is exactly the raw tiles (64 wide, 48 high: the
-        # square tiles are 64 px, so rows snap); the first tile's corners are the metadata's first row
-        assert tiles[0].corners_latlon[0] == pytest.approx(s.corners[(0, 0)][:2], abs=1e-10)
-        assert g.cols == [0, 64, 128, 192]
+    assert m.base_tile_size == (64, 48)
+    g, tiles = _check_grid(m, zoom, overlap, 64, 48)  # 64 x 48 raw tiles give 64/zoom x 48/zoom tiles
+    if zoom == 1 and overlap == 0:  # zoom 1 without overlap is exactly the raw tiles, corners the metadata's
+        assert g.cols == [0, 64, 128, 192] and g.rows == [0, 48, 96]
+        for t in tiles:
+            (tl_lat, tl_lon), (br_lat, br_lon) = t.corners_latlon
+            assert [tl_lat, tl_lon, br_lat, br_lon] == pytest.approx(s.corners[(t.row // 48, t.col // 64)], abs=1e-10)
+            rgb, _ = m.read(t.col, t.row, t.width, t.height)
+            np.testing.assert_array_equal(rgb, s.image[t.row : t.row + 48, t.col : t.col + 64])
 
 
 def test_point_just_outside_a_tile_is_outside(naip):
@@ -138,8 +146,9 @@ def test_bad_grid_parameters(naip, kwargs, match):
 
 def test_tile_larger_than_seed_map(seed):
     _, m = seed
-    with pytest.raises(AerolocError, match="larger than"):
-        TileGrid(m, 0.4, 0)  # 160 px tiles on a 256x144 mosaic
+    TileGrid(m, 0.4, 0)  # 160 x 120 px tiles fit the 256 x 144 mosaic
+    with pytest.raises(AerolocError, match=r"tiles of 213x160 px .* larger than the 256x144 map"):
+        TileGrid(m, 0.3, 0)
 
 
 # --- on-disk database --------------------------------------------------------------------------------------
@@ -173,13 +182,15 @@ def _assert_database_matches_map(out, m, zoom, overlap):
 def test_write_tiles_renders_the_map_and_caches(tmp_path, seed):
     s, m = seed
     out = tmp_path / "db"
-    info = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
-    assert not info.get("cached") and info["n_tiles"] == len(TileGrid(m, 1.5, 0.5))
+    report = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
+    assert not report.cached and report.n_tiles == len(TileGrid(m, 1.5, 0.5))
     _assert_database_matches_map(out, m, 1.5, 0.5)
-    assert load_info(out)["grid"]["side_px"] == 43
+    grid = load_info(out)["grid"]
+    assert (grid["width_px"], grid["height_px"], grid["step_x_px"], grid["step_y_px"]) == (43, 32, 22, 16)
+    assert report.tile_px == (43, 32) and report.step_px == (22, 16)
     mtimes = {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
     again = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
-    assert again["cached"] is True
+    assert again.cached is True and again == replace(report, cached=True)
     assert {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == mtimes
     # another configuration in the same folder replaces the database instead of mixing them
     write_tiles(s.path, out, zoom=2, overlap=0, progress=False)
@@ -218,8 +229,8 @@ def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch)
     with pytest.raises(AerolocError, match=r"tiles\.csv"):
         load_tiles(out)
     kept = {p: p.stat().st_mtime_ns for p in (out / "images").glob("*.png")}
-    info = write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
-    assert not info.get("cached")
+    report = write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
+    assert not report.cached
     _assert_database_matches_map(out, m, 1, 0.5)
     assert all(p.stat().st_mtime_ns == t for p, t in kept.items())  # resumed: finished tiles were kept
 
@@ -244,8 +255,13 @@ def test_write_tiles_on_naip(tmp_path, naip_map, naip):
     # zoom 2 -> 128 px tiles; overlap 0.25 -> step 96: 1 + ceil((934-128)/96) = 10 columns,
     # 1 + ceil((723-128)/96) = 8 rows, the last ones snapped to start at 934-128 = 806 and 723-128 = 595.
     out = tmp_path / "naip"
-    info = write_tiles(naip_map, out, zoom=2, overlap=0.25, progress=False)
-    assert info["n_tiles"] == 80 and (info["grid"]["n_cols"], info["grid"]["n_rows"]) == (10, 8)
+    report = write_tiles(naip_map, out, zoom=2, overlap=0.25, progress=False)
+    assert report.n_tiles == 80 and (report.grid["n_cols"], report.grid["n_rows"]) == (10, 8)
+    assert report.tile_px == (128, 128) and report.step_px == (96, 96)
+    # tiles.json is the report (square grids keep the one-side keys)
+    assert load_info(out) == report.to_json()
+    assert list(report.to_json()) == ["map", "grid", "n_tiles", "format", "build_s", "image_bytes"]
+    assert (report.grid["side_px"], report.grid["step_px"], report.grid["base_px"]) == (128, 96, 256.0)
     rows = _assert_database_matches_map(out, naip, 2, 0.25)
     assert (int(rows[-1]["col"]), int(rows[-1]["row"])) == (806, 595)
     assert rows[0]["crs"] == "EPSG:26914"

@@ -143,7 +143,7 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
         "descriptor_bytes_per_tile": grep.bytes_per_tile,
         "local_bytes_per_tile": lrep.bytes_per_tile if lrep else 0.0,
         "index_bytes": grep.index_bytes,
-        "tile_image_bytes": tinfo.get("image_bytes"),
+        "tile_image_bytes": tinfo.image_bytes,
         "peak_rss_mb": peak,
     }
     return {

@@ -53,8 +53,8 @@ def run(args) -> int:
         rerank_conf(args.local)
     trust_from_args(args)
     device = pick_device(args.device)
-    info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
-    print(summary(info, args.out))
+    tiles_report = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
+    print(summary(tiles_report, args.out))
     db = Database(args.out)
     rep = build_global(
         db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index, args.half

@@ -63,8 +63,8 @@ def run(args) -> int:
         print(f"\n== {name} ==")
         db_dir = out / Path(map_rel).parent.name
         t0 = time.perf_counter()
-        info = write_tiles(data / map_rel, db_dir, zoom, overlap, tile_m)
-        print(summary(info, db_dir))
+        tiles_report = write_tiles(data / map_rel, db_dir, zoom, overlap, tile_m)
+        print(summary(tiles_report, db_dir))
         db = Database(db_dir)
         g = build_global(db, DEFAULT_METHOD, device=device)
         build_local(db, rerank, device)

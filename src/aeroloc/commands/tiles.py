@@ -18,18 +18,25 @@ def add_arguments(p):
 def run(args) -> int:
     from aeroloc.maps.tiling import write_tiles
 
-    info = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m, progress=True)
-    print(summary(info, args.out))
+    report = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m, progress=True)
+    print(summary(report, args.out))
     return 0
 
 
-def summary(info: dict, out) -> str:
-    g, m = info["grid"], info["map"]
-    side_m = g["side_px"] * m["resolution_m"]
-    cached = " (cached)" if info.get("cached") else f" in {info.get('build_s', 0):.2f} s"
+def summary(report, out) -> str:
+    """One line about a :class:`~aeroloc.maps.tiling.TilesReport`: ``N tiles (R rows x C cols) of S px …``
+    (``W``x``H`` px for rectangular tiles)."""
+    g, m = report.grid, report.map
+    (w, h), (sx, sy) = report.tile_px, report.step_px
+    res = m["resolution_m"]
+    if w == h and sx == sy:
+        size, size_m, step = f"{w} px", f"~{w * res:.0f} m", f"{sx} px"
+    else:
+        size, size_m, step = f"{w}x{h} px", f"~{w * res:.0f}x{h * res:.0f} m", f"{sx}x{sy} px"
+    cached = " (cached)" if report.cached else f" in {report.build_s or 0:.2f} s"
     return (
-        f"{info['n_tiles']} tiles ({g['n_rows']} rows x {g['n_cols']} cols) of {g['side_px']} px "
-        f"(~{side_m:.0f} m), step {g['step_px']} px, zoom {g['zoom']:g}, overlap {g['overlap']:g}; "
-        f"map {m['width']}x{m['height']} px at {m['resolution_m']:.2f} m/px fully covered; "
-        f"{info.get('image_bytes', 0) / 1e6:.1f} MB of images{cached} -> {out}"
+        f"{report.n_tiles} tiles ({g['n_rows']} rows x {g['n_cols']} cols) of {size} "
+        f"({size_m}), step {step}, zoom {g['zoom']:g}, overlap {g['overlap']:g}; "
+        f"map {m['width']}x{m['height']} px at {res:.2f} m/px fully covered; "
+        f"{(report.image_bytes or 0) / 1e6:.1f} MB of images{cached} -> {out}"
     )

@@ -37,7 +37,8 @@ class Map:
     transform: Affine  # pixel (col, row) -> CRS (x, y)
     width: int
     height: int
-    base_tile_px: int | None = None  # raw tile size of tile-folder maps (the zoom-1 tile side)
+    base_tile_px: int | None = None  # longer side of the raw tiles of tile-folder maps
+    base_tile_size: tuple[int, int] | None = None  # (width, height) of those raw tiles: the zoom-1 tile
 
     def read(self, col: int, row: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """RGB uint8 (height x width x 3) and valid mask (bool) of a window inside the map."""
@@ -171,6 +172,7 @@ class TileFolderMap(Map):
         self.width, self.height = n_cols * tile_w, n_rows * tile_h
         self.transform = transform
         self.base_tile_px = max(tile_w, tile_h)
+        self.base_tile_size = (tile_w, tile_h)
         self._cache: OrderedDict = OrderedDict()
 
     def _tile(self, r: int, c: int):

@@ -1,10 +1,13 @@
 """Cut a map into a tile database at any zoom and overlap, with exact georeference per tile.
 
-Zoom is the scale relative to the map's base tile: ``side = round(base / zoom)`` map pixels (zoom 2 -> half the
-side, 0.5 -> twice). The base is the raw tile size for tile-folder maps, ``tile_m`` metres when given, and
+Zoom is the scale relative to the map's base tile, per axis: a tile is ``round(base_w / zoom)`` x
+``round(base_h / zoom)`` map pixels (zoom 2 -> half of each side, 0.5 -> twice). The base is the raw tile size
+(width x height) for tile-folder maps, so rectangular raw tiles (the seed's 1280x1230) give rectangular tiles
+and zoom 1 without overlap gives exactly the raw tiles; it is a square of ``tile_m`` metres when given, and of
 ``DEFAULT_BASE_PX`` (256 map pixels, one web tile) for GeoTIFFs otherwise. Overlap o in [0, 1) sets the step
-``round(side * (1 - o))``. Every map pixel is covered: the last row/column is snapped to the map edge (it
-overlaps its neighbour a bit more) rather than dropped. A tile's corners are the outer pixel edges.
+along each axis, ``round(side * (1 - o))`` of that axis's side. Every map pixel is covered: the last
+row/column is snapped to the map edge (it overlaps its neighbour a bit more) rather than dropped. A tile's
+corners are the outer pixel edges.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import csv
 import json
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +54,8 @@ CSV_COLUMNS = [
 
 @dataclass(frozen=True)
 class Tile:
-    """A square window of the map. ``transform`` maps the tile's own pixels to the map CRS."""
+    """A window of the map (square unless the raw tiles are not). ``transform`` maps the tile's own pixels to
+    the map CRS."""
 
     id: str
     col: int  # window in map pixels
@@ -99,7 +103,11 @@ def tile_count(length: int, side: int, step: int) -> int:
 
 
 class TileGrid:
-    """The tiles of ``map`` at ``zoom`` and ``overlap`` (see the module docstring for the rules)."""
+    """The tiles of ``map`` at ``zoom`` and ``overlap`` (see the module docstring for the rules).
+
+    ``tile_w`` x ``tile_h`` is the tile size and ``step_x``/``step_y`` the steps in map pixels; ``side`` and
+    ``step`` are the same numbers for square tiles (rectangular grids have no single side).
+    """
 
     def __init__(
         self,
@@ -116,22 +124,49 @@ class TileGrid:
         if tile_m is not None and not tile_m > 0:
             raise AerolocError(f"--tile-m must be > 0, got {tile_m}")
         self.map, self.zoom, self.overlap = map_, float(zoom), float(overlap)
-        if base_px is None:
-            if tile_m is not None:
-                base_px = tile_m / map_.resolution_m
-            else:
-                base_px = map_.base_tile_px or DEFAULT_BASE_PX
-        self.base_px = float(base_px)
         self.tile_m = tile_m
-        self.side = max(1, int(round(self.base_px / self.zoom)))
-        if self.side > min(map_.width, map_.height):
+        self.base_w, self.base_h = _base_size(map_, tile_m, base_px)
+        self.tile_w = max(1, int(round(self.base_w / self.zoom)))
+        self.tile_h = max(1, int(round(self.base_h / self.zoom)))
+        if self.tile_w > map_.width or self.tile_h > map_.height:
             raise AerolocError(
-                f"{map_.path}: tiles of {self.side} px (zoom {zoom}, base {self.base_px:.0f} px) are larger than "
-                f"the {map_.width}x{map_.height} map; use a higher zoom or a smaller --tile-m"
+                f"{map_.path}: tiles of {self._size_text()} px (zoom {zoom}, base {self._base_text()} px) are larger "
+                f"than the {map_.width}x{map_.height} map; use a higher zoom or a smaller --tile-m"
             )
-        self.step = max(1, int(round(self.side * (1 - self.overlap))))
-        self.cols = axis_starts(map_.width, self.side, self.step)
-        self.rows = axis_starts(map_.height, self.side, self.step)
+        self.step_x = max(1, int(round(self.tile_w * (1 - self.overlap))))
+        self.step_y = max(1, int(round(self.tile_h * (1 - self.overlap))))
+        self.cols = axis_starts(map_.width, self.tile_w, self.step_x)
+        self.rows = axis_starts(map_.height, self.tile_h, self.step_y)
+
+    @property
+    def square(self) -> bool:
+        return self.base_w == self.base_h
+
+    @property
+    def base_px(self) -> float:
+        """The square base side (square grids only)."""
+        return self._one("base_px", self.base_w)
+
+    @property
+    def side(self) -> int:
+        """The square tile side (square grids only; see ``tile_w``/``tile_h``)."""
+        return self._one("side", self.tile_w)
+
+    @property
+    def step(self) -> int:
+        """The step along both axes (square grids only; see ``step_x``/``step_y``)."""
+        return self._one("step", self.step_x)
+
+    def _one(self, name: str, value):
+        if not self.square:
+            raise AerolocError(f"{self.map.path}: {name}: the tiles are {self._size_text()} px, not square")
+        return value
+
+    def _size_text(self) -> str:
+        return f"{self.tile_w}" if self.square else f"{self.tile_w}x{self.tile_h}"
+
+    def _base_text(self) -> str:
+        return f"{self.base_w:.0f}" if self.square else f"{self.base_w:.0f}x{self.base_h:.0f}"
 
     def __len__(self) -> int:
         return len(self.cols) * len(self.rows)
@@ -144,24 +179,49 @@ class TileGrid:
                     id=f"r{i:03d}c{j:03d}",
                     col=c,
                     row=r,
-                    width=self.side,
-                    height=self.side,
+                    width=self.tile_w,
+                    height=self.tile_h,
                     transform=shifted(t, c, r),
                     crs=self.map.crs,
                     path=f"images/r{i:03d}c{j:03d}.png",
                 )
 
     def params(self) -> dict:
+        """The grid as tiles.json holds it. Square grids keep the one-side keys (``base_px``, ``side_px``,
+        ``step_px``); rectangular ones give each axis (``base_px`` [w, h], ``width_px``, ``height_px``,
+        ``step_x_px``, ``step_y_px``)."""
+        if self.square:
+            size = {"base_px": self.base_w, "side_px": self.tile_w, "step_px": self.step_x}
+        else:
+            size = {
+                "base_px": [self.base_w, self.base_h],
+                "width_px": self.tile_w,
+                "height_px": self.tile_h,
+                "step_x_px": self.step_x,
+                "step_y_px": self.step_y,
+            }
         return {
             "zoom": self.zoom,
             "overlap": self.overlap,
             "tile_m": self.tile_m,
-            "base_px": self.base_px,
-            "side_px": self.side,
-            "step_px": self.step,
+            **size,
             "n_rows": len(self.rows),
             "n_cols": len(self.cols),
         }
+
+
+def _base_size(map_: Map, tile_m: float | None, base_px: float | None) -> tuple[float, float]:
+    """(width, height) of the zoom-1 tile in map pixels: ``base_px`` if given, else a square of ``tile_m``
+    metres, else the map's raw tile size (tile folders), else ``DEFAULT_BASE_PX``."""
+    if base_px is not None:
+        return float(base_px), float(base_px)
+    if tile_m is not None:
+        side = tile_m / map_.resolution_m
+        return float(side), float(side)
+    if map_.base_tile_size is not None:
+        w, h = map_.base_tile_size
+        return float(w), float(h)
+    return float(DEFAULT_BASE_PX), float(DEFAULT_BASE_PX)
 
 
 def shifted(t: Affine, col: int, row: int) -> Affine:
@@ -194,30 +254,86 @@ def tile_row(t: Tile) -> dict:
     }
 
 
-def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=True) -> dict:
+@dataclass(frozen=True)
+class TilesReport:
+    """What ``write_tiles`` built (or found cached): the map, the grid and the cost. ``to_json()`` is the
+    content of ``tiles.json`` (``cached`` is not stored: it says whether this call rendered anything)."""
+
+    map: dict  # Map.describe()
+    grid: dict  # TileGrid.params()
+    n_tiles: int
+    format: int = 1
+    build_s: float | None = None  # seconds spent rendering (of the build that wrote tiles.json)
+    image_bytes: int | None = None  # total size of the tile images
+    cached: bool = False
+
+    @property
+    def tile_px(self) -> tuple[int, int]:
+        """(width, height) of every tile in map pixels."""
+        g = self.grid
+        return (g["side_px"], g["side_px"]) if "side_px" in g else (g["width_px"], g["height_px"])
+
+    @property
+    def step_px(self) -> tuple[int, int]:
+        """(x, y) step between neighbouring tiles in map pixels."""
+        g = self.grid
+        return (g["step_px"], g["step_px"]) if "step_px" in g else (g["step_x_px"], g["step_y_px"])
+
+    def to_json(self) -> dict:
+        d = {"map": self.map, "grid": self.grid, "n_tiles": self.n_tiles, "format": self.format}
+        if self.build_s is not None:
+            d["build_s"] = self.build_s
+        if self.image_bytes is not None:
+            d["image_bytes"] = self.image_bytes
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict, cached: bool = False) -> TilesReport:
+        return cls(
+            map=d["map"],
+            grid=d["grid"],
+            n_tiles=int(d["n_tiles"]),
+            format=int(d.get("format", 1)),
+            build_s=d.get("build_s"),
+            image_bytes=d.get("image_bytes"),
+            cached=cached,
+        )
+
+
+def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=True) -> TilesReport:
     """Render every tile once to ``out_dir/images`` and write ``tiles.csv`` + ``tiles.json`` last.
 
     Resumable: tile images already on disk are kept (each is written atomically), and an existing database
     with the same map and parameters is a cache hit. ``tiles.csv`` appears only when every image is there,
     so a half-built folder is never taken for a complete one.
     """
+    m = map_path if isinstance(map_path, Map) else open_map(map_path)
+    grid = TileGrid(m, zoom, overlap, tile_m)
+    out = Path(out_dir)
+    report = TilesReport(map=m.describe(), grid=grid.params(), n_tiles=len(grid))
+    done = _existing(out, report)
+    if done is not None:
+        return done
+    _discard_other_partial_build(out, report)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    for stale in (out / TILES_CSV, out / TILES_JSON):
+        stale.unlink(missing_ok=True)
+    (out / BUILDING_JSON).write_text(json.dumps(_build_key(report)))
+    t0 = time.perf_counter()
+    rows, nbytes = _render(m, grid, out, progress)
+    report = replace(report, build_s=round(time.perf_counter() - t0, 3), image_bytes=nbytes)
+    (out / TILES_JSON).write_text(json.dumps(report.to_json(), indent=1))
+    write_csv_atomic(out / TILES_CSV, CSV_COLUMNS, rows)  # last: its presence marks a finished tile set
+    (out / BUILDING_JSON).unlink(missing_ok=True)
+    return report
+
+
+def _render(m: Map, grid: TileGrid, out: Path, progress: bool) -> tuple[list[dict], int]:
+    """Write the images not on disk yet; the tiles.csv rows and the total image bytes."""
     from tqdm import tqdm
 
     from aeroloc.core.images import write_image
 
-    m = map_path if isinstance(map_path, Map) else open_map(map_path)
-    grid = TileGrid(m, zoom, overlap, tile_m)
-    out = Path(out_dir)
-    info = {"map": m.describe(), "grid": grid.params(), "n_tiles": len(grid), "format": 1}
-    done = _existing(out, info)
-    if done is not None:
-        return done
-    _discard_other_partial_build(out, info)
-    (out / "images").mkdir(parents=True, exist_ok=True)
-    for stale in (out / TILES_CSV, out / TILES_JSON):
-        stale.unlink(missing_ok=True)
-    (out / BUILDING_JSON).write_text(json.dumps(_build_key(info)))
-    t0 = time.perf_counter()
     rows, nbytes = [], 0
     for tile in tqdm(list(grid), desc="tiles", unit="tile", disable=not progress, leave=False):
         p = out / tile.path
@@ -226,30 +342,26 @@ def write_tiles(map_path, out_dir, zoom=1.0, overlap=0.0, tile_m=None, progress=
             write_image(p, rgb)
         nbytes += p.stat().st_size
         rows.append(tile_row(tile))
-    info.update(build_s=round(time.perf_counter() - t0, 3), image_bytes=nbytes)
-    (out / TILES_JSON).write_text(json.dumps(info, indent=1))
-    write_csv_atomic(out / TILES_CSV, CSV_COLUMNS, rows)  # last: its presence marks a finished tile set
-    (out / BUILDING_JSON).unlink(missing_ok=True)
-    return info
+    return rows, nbytes
 
 
-def _build_key(info: dict) -> dict:
-    return {"grid": info["grid"], "map_path": info["map"]["path"], "transform": info["map"]["transform"]}
+def _build_key(report: TilesReport) -> dict:
+    return {"grid": report.grid, "map_path": report.map["path"], "transform": report.map["transform"]}
 
 
-def _discard_other_partial_build(out: Path, info: dict) -> None:
+def _discard_other_partial_build(out: Path, report: TilesReport) -> None:
     """Images left by an interrupted build are reused only when it was building this same configuration."""
     if not (out / "images").is_dir():
         return
     try:
-        same = json.loads((out / BUILDING_JSON).read_text()) == json.loads(json.dumps(_build_key(info)))
+        same = json.loads((out / BUILDING_JSON).read_text()) == json.loads(json.dumps(_build_key(report)))
     except (OSError, json.JSONDecodeError):
         same = False
     if not same:
         shutil.rmtree(out / "images")
 
 
-def _existing(out: Path, info: dict) -> dict | None:
+def _existing(out: Path, report: TilesReport) -> TilesReport | None:
     meta = out / TILES_JSON
     if not (meta.is_file() and (out / TILES_CSV).is_file()):
         return None
@@ -258,12 +370,15 @@ def _existing(out: Path, info: dict) -> dict | None:
     except json.JSONDecodeError:
         return None
     same = (
-        old.get("grid") == info["grid"]
-        and old.get("map", {}).get("path") == info["map"]["path"]
-        and old.get("map", {}).get("transform") == info["map"]["transform"]
+        old.get("grid") == report.grid
+        and old.get("map", {}).get("path") == report.map["path"]
+        and old.get("map", {}).get("transform") == report.map["transform"]
     )
     if same:
-        return {**old, "cached": True}
+        try:
+            return TilesReport.from_json(old, cached=True)
+        except (KeyError, TypeError, ValueError):
+            pass  # an unreadable tiles.json: rebuild
     if (out / "images").is_dir():  # another configuration lives here: start afresh
         shutil.rmtree(out / "images")
     return None
@@ -320,4 +435,13 @@ def load_info(db_dir) -> dict:
     return json.loads(p.read_text())
 
 
-__all__ = ["Tile", "TileGrid", "axis_starts", "load_info", "load_tiles", "tile_count", "write_tiles"]
+__all__ = [
+    "Tile",
+    "TileGrid",
+    "TilesReport",
+    "axis_starts",
+    "load_info",
+    "load_tiles",
+    "tile_count",
+    "write_tiles",
+]

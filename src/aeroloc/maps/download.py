@@ -363,8 +363,6 @@ def download_tiles(
     """Fetch every job not already on disk and valid. Ctrl-C (or any crash) stops cleanly: finished tiles stay,
     no partial file is left, and the next run resumes. A refusal (401/403) or an unwritable folder stops the
     run: ``report.fatal`` is set and the tiles not fetched are listed as failed."""
-    from tqdm import tqdm
-
     if workers < 1:
         raise AerolocError(f"workers {workers}: must be >= 1")
     policy = policy or RetryPolicy()
@@ -374,52 +372,10 @@ def download_tiles(
 
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="aeroloc-dl")
     try:
-        # 1. resume: keep tiles already saved and decodable
-        def present(job):
-            p = job.existing()
-            return p is not None and valid_file(p, job.final_size)
-
-        checks = tqdm(
-            pool.map(present, jobs),
-            total=len(jobs),
-            unit="tile",
-            desc="verify on disk",
-            leave=False,
-            disable=not progress,
-        )
-        pending = [job for job, ok in zip(jobs, checks) if not ok]
+        pending = _not_on_disk(pool, jobs, progress)  # 1. resume: keep tiles already saved and decodable
         report.skipped = len(jobs) - len(pending)
-
-        # 2. fetch the rest
-        bar = tqdm(
-            total=len(pending), unit="tile", desc="download", disable=not progress, dynamic_ncols=True, smoothing=0.1
-        )
-        consecutive = 0
         futures = {pool.submit(fetch_tile, job, policy, bucket, secret, stop, report, lock): job for job in pending}
-        try:
-            for fut in as_completed(futures):  # O(n) overall, unlike repeated wait() on the whole set
-                job = futures[fut]
-                try:
-                    fut.result()
-                    report.downloaded += 1
-                    consecutive = 0
-                except TileError as exc:
-                    report.failed[job.label] = exc.reason
-                    if exc.fatal:
-                        if not report.fatal:
-                            report.aborted, report.fatal = f"tile {job.label}: {exc.reason}", True
-                        stop.set()
-                    elif exc.reason != "not attempted (run stopped)":
-                        consecutive += 1
-                        if consecutive >= max_consecutive_failures and not stop.is_set():
-                            report.aborted = (
-                                f"{consecutive} tiles in a row failed (last: {exc.reason}); is the server reachable?"
-                            )
-                            stop.set()
-                bar.update(1)
-                bar.set_postfix(missing=len(report.failed), retries=report.retries, refresh=False)
-        finally:
-            bar.close()
+        _collect(futures, report, stop, max_consecutive_failures, progress)  # 2. fetch the rest
     except BaseException:
         stop.set()  # workers finish the tile in hand (atomic write) and take no new one
         pool.shutdown(wait=True, cancel_futures=True)
@@ -427,6 +383,66 @@ def download_tiles(
     pool.shutdown(wait=True)
     report.seconds = time.monotonic() - start
     return report
+
+
+def _not_on_disk(pool: ThreadPoolExecutor, jobs: list[TileJob], progress: bool) -> list[TileJob]:
+    """The jobs whose tile is not saved yet, or saved but not decodable at its size (checked in parallel)."""
+    from tqdm import tqdm
+
+    def present(job):
+        p = job.existing()
+        return p is not None and valid_file(p, job.final_size)
+
+    checks = tqdm(
+        pool.map(present, jobs),
+        total=len(jobs),
+        unit="tile",
+        desc="verify on disk",
+        leave=False,
+        disable=not progress,
+    )
+    return [job for job, ok in zip(jobs, checks) if not ok]
+
+
+def _collect(futures: dict, report: DownloadReport, stop: threading.Event, max_consecutive: int, progress: bool):
+    """Count the fetches as they finish; a fatal error, or ``max_consecutive`` failures in a row, sets ``stop``
+    (the jobs not started yet then fail as 'not attempted')."""
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=len(futures), unit="tile", desc="download", disable=not progress, dynamic_ncols=True, smoothing=0.1
+    )
+    consecutive = 0
+    try:
+        for fut in as_completed(futures):  # O(n) overall, unlike repeated wait() on the whole set
+            job = futures[fut]
+            try:
+                fut.result()
+                report.downloaded += 1
+                consecutive = 0
+            except TileError as exc:
+                consecutive = _record_failure(job, exc, report, stop, consecutive, max_consecutive)
+            bar.update(1)
+            bar.set_postfix(missing=len(report.failed), retries=report.retries, refresh=False)
+    finally:
+        bar.close()
+
+
+def _record_failure(
+    job: TileJob, exc: TileError, report: DownloadReport, stop: threading.Event, consecutive: int, max_consecutive: int
+) -> int:
+    """Note one failed tile; the new count of failures in a row."""
+    report.failed[job.label] = exc.reason
+    if exc.fatal:
+        if not report.fatal:
+            report.aborted, report.fatal = f"tile {job.label}: {exc.reason}", True
+        stop.set()
+    elif exc.reason != "not attempted (run stopped)":
+        consecutive += 1
+        if consecutive >= max_consecutive and not stop.is_set():
+            report.aborted = f"{consecutive} tiles in a row failed (last: {exc.reason}); is the server reachable?"
+            stop.set()
+    return consecutive
 
 
 # --- whole maps ----------------------------------------------------------------------------------------------
@@ -489,12 +505,7 @@ def download_map(
     """
     out = Path(out)
     bbox = check_bbox(bbox)
-    if isinstance(provider, GoogleStaticProvider):
-        plan = _google_plan(out, bbox, zoom, provider, key, max_tiles)
-    elif isinstance(provider, XYZProvider):
-        plan = _xyz_plan(out, bbox, zoom, provider, key, max_tiles)
-    else:
-        raise AerolocError(f"unknown provider object {type(provider).__name__}")
+    plan = _plan(out, bbox, zoom, provider, key, max_tiles)
     _check_same_map(out, plan.manifest)
     out.mkdir(parents=True, exist_ok=True)
     remove_partial_files(out)
@@ -521,19 +532,33 @@ def download_map(
             max_consecutive_failures=max_consecutive_failures,
         )
     finally:
-        if report is not None:
-            missing = [j for j in plan.jobs if j.label in report.failed]
-        else:  # crashed: trust only what is on disk and decodes
-            missing = [j for j in plan.jobs if not ((p := j.existing()) and valid_file(p, j.final_size))]
-        manifest.update(tiles_missing=[plan.missing_id(j) for j in missing], complete=not missing, updated=_now())
-        if "ext_note" in manifest:  # the template named no format: say which one the server sent
-            exts = Counter(p.suffix for j in plan.jobs if (p := j.existing()))
-            if exts:
-                manifest["ext"] = exts.most_common(1)[0][0].lstrip(".")
-        _write_json(out / "manifest.json", manifest)
+        _finish_manifest(out, plan, manifest, report)
     if report.fatal:
         raise AerolocError(f"{provider.name}: {redact(report.aborted, key)}; finished tiles are kept in {out}")
     return report, manifest
+
+
+def _plan(out: Path, bbox, zoom: int, provider, key, max_tiles: int) -> _Plan:
+    if isinstance(provider, GoogleStaticProvider):
+        return _google_plan(out, bbox, zoom, provider, key, max_tiles)
+    if isinstance(provider, XYZProvider):
+        return _xyz_plan(out, bbox, zoom, provider, key, max_tiles)
+    raise AerolocError(f"unknown provider object {type(provider).__name__}")
+
+
+def _finish_manifest(out: Path, plan: _Plan, manifest: dict, report: DownloadReport | None) -> None:
+    """Record what is still missing (all of what is not on disk and decodable when the run crashed, ``report``
+    None) and, for templates without a format, the one the server sent; rewrite ``manifest.json``."""
+    if report is not None:
+        missing = [j for j in plan.jobs if j.label in report.failed]
+    else:  # crashed: trust only what is on disk and decodes
+        missing = [j for j in plan.jobs if not ((p := j.existing()) and valid_file(p, j.final_size))]
+    manifest.update(tiles_missing=[plan.missing_id(j) for j in missing], complete=not missing, updated=_now())
+    if "ext_note" in manifest:  # the template named no format: say which one the server sent
+        exts = Counter(p.suffix for j in plan.jobs if (p := j.existing()))
+        if exts:
+            manifest["ext"] = exts.most_common(1)[0][0].lstrip(".")
+    _write_json(out / "manifest.json", manifest)
 
 
 def _check_count(n: int, zoom: int, max_tiles: int) -> None:

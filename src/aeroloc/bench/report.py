@@ -222,8 +222,41 @@ def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, t
 
     fields = varying(rows, always=("method", "reranker"))
     shown = default_config(rows, thresholds)
+    gallery, images = _gallery(idx, qrows_by_key.get(shown["config_key"], []))
+    configs = [
+        {
+            "label": _label(r, fields),
+            "key": r["config_key"],
+            "shown": r is shown,
+            "points": _points(qrows_by_key.get(r["config_key"], []), images if r is shown else {}),
+        }
+        for r in rows
+    ]
+    view = {
+        "id": f"map{idx}",
+        "dataset": dataset,
+        "thresholds": list(thresholds),
+        "configs": configs,
+        "overlay": None,
+        "tiles": None,
+        "colours": ERROR_COLOURS,
+        "grey": NOT_LOCALIZED_COLOUR,
+    }
+    _add_map_layers(view, shown)
+    gallery_html = ""
+    if gallery:
+        gallery_html = (
+            f"<h3>Match visualisations — {html.escape(_label(shown, fields))}</h3>"
+            f"<p class=hint>Query (left) against the chosen tile (right); inlier matches green. "
+            f"Click to enlarge.</p><div class=gallery>{''.join(gallery)}</div>"
+        )
+    return view, gallery_html
+
+
+def _gallery(idx: int, qrows: list[dict]) -> tuple[list[str], dict]:
+    """The thumbnails (HTML figures) of the sampled match images, and query name -> image element id."""
     gallery, images = [], {}
-    for q in sample_matches(qrows_by_key.get(shown["config_key"], [])):
+    for q in sample_matches(qrows):
         uris = match_image_uris(q["match_image"])
         if uris is None:
             continue
@@ -235,38 +268,36 @@ def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, t
             f"<figure class=thumb><img id={img_id} src='{uris[0]}' data-full='{uris[1]}' "
             f"alt='{html.escape(q['name'])}' loading=lazy><figcaption>{html.escape(cap)}</figcaption></figure>"
         )
-    configs = []
-    for r in rows:
-        pts = []
-        for q in qrows_by_key.get(r["config_key"], []):
-            est = (
-                [q["est_lat"], q["est_lon"]]
-                if _num(q.get("est_lat")) is not None and _num(q.get("est_lon")) is not None
-                else None
-            )
-            pts.append(
-                {
-                    "n": q["name"],
-                    "t": [q["true_lat"], q["true_lon"]],
-                    "e": est,
-                    "err": _num(q.get("error_m")),
-                    "st": q.get("status") or "",
-                    "inl": q.get("inliers"),
-                    "rank": q.get("vpr_rank"),
-                    "img": images.get(q["name"]) if r is shown else None,
-                }
-            )
-        configs.append({"label": _label(r, fields), "key": r["config_key"], "shown": r is shown, "points": pts})
-    view = {
-        "id": f"map{idx}",
-        "dataset": dataset,
-        "thresholds": list(thresholds),
-        "configs": configs,
-        "overlay": None,
-        "tiles": None,
-        "colours": ERROR_COLOURS,
-        "grey": NOT_LOCALIZED_COLOUR,
-    }
+    return gallery, images
+
+
+def _points(qrows: list[dict], images: dict) -> list[dict]:
+    """One configuration's queries for the map: truth, estimate (None when not localized), error and details;
+    ``img`` names the gallery image of the query, if any."""
+    pts = []
+    for q in qrows:
+        est = (
+            [q["est_lat"], q["est_lon"]]
+            if _num(q.get("est_lat")) is not None and _num(q.get("est_lon")) is not None
+            else None
+        )
+        pts.append(
+            {
+                "n": q["name"],
+                "t": [q["true_lat"], q["true_lon"]],
+                "e": est,
+                "err": _num(q.get("error_m")),
+                "st": q.get("status") or "",
+                "inl": q.get("inliers"),
+                "rank": q.get("vpr_rank"),
+                "img": images.get(q["name"]),
+            }
+        )
+    return pts
+
+
+def _add_map_layers(view: dict, shown: dict) -> None:
+    """The map imagery under the points (or why it is missing) and the tile footprints of the shown config."""
     try:
         view["overlay"] = map_overlay(shown["map_path"])
     except Exception as exc:
@@ -275,14 +306,6 @@ def dataset_view(idx: int, dataset: str, rows: list[dict], qrows_by_key: dict, t
         tiles = tile_footprints(shown["db"])
         if tiles:
             view["tiles"] = {"label": f"tiles (zoom {shown['zoom']:g}, overlap {shown['overlap']:g})", "polys": tiles}
-    gallery_html = ""
-    if gallery:
-        gallery_html = (
-            f"<h3>Match visualisations — {html.escape(_label(shown, fields))}</h3>"
-            f"<p class=hint>Query (left) against the chosen tile (right); inlier matches green. "
-            f"Click to enlarge.</p><div class=gallery>{''.join(gallery)}</div>"
-        )
-    return view, gallery_html
 
 
 def _finite(obj):
@@ -331,38 +354,14 @@ def write_report(
     if not rows:
         raise AerolocError(f"{path}: no results to report")
     e = html.escape
-    js, css = leaflet_assets()
+    js, css = leaflet_assets()  # first: without Leaflet there is no page to build
     sections, views, toc = [], [], []
     for i, (dataset, rs) in enumerate(by_dataset(rows).items()):
         view, gallery = dataset_view(i, dataset, rs, qrows_by_key, thresholds)
         views.append(view)
-        anchor = f"ds{i}"
-        toc.append(f"<a href='#{anchor}'>{e(dataset)}</a>")
-        ts = "".join(t.html() for t in tables if getattr(t, "dataset", dataset) == dataset)
-        ps = "".join(
-            f"<figure class=plot><img src='{png_data_uri(p.path)}' data-full='' alt='{e(p.title)}'>"
-            f"<figcaption>{e(p.title)}</figcaption></figure>"
-            for p in plots
-            if p.dataset == dataset
-        )
-        n_q = max((r.get("n_queries") or 0) for r in rs)
-        note = (
-            f"<p class=warn>map imagery unavailable: {e(view.get('overlay_error', ''))}</p>"
-            if view.get("overlay_error")
-            else ""
-        )
-        sections.append(
-            f"<section id={anchor}><h2>{e(dataset)}</h2>"
-            f"<p class=sub>map <code>{e(rs[0]['map'])}</code> · {n_q} queries · {len(rs)} configurations</p>"
-            f"<h3>Ground truth vs estimate</h3><p class=hint>White dots: ground truth; coloured dots: estimates, "
-            f"joined by a line, coloured by error; grey rings: not localized. Click a point for details.</p>{note}"
-            f"<label class=picker>configuration <select id=map{i}-pick></select></label>"
-            f"<div class=map id=map{i}></div>"
-            f"{gallery}<h3>Tables</h3>{ts}<h3>Plots</h3><div class=plots>{ps}</div></section>"
-        )
+        toc.append(f"<a href='#ds{i}'>{e(dataset)}</a>")
+        sections.append(_section(i, dataset, rs, view, gallery, tables, plots))
     links = " · ".join(f"<a href='{e(str(p))}'>{e(k)}</a>" for k, p in (files or {}).items())
-    data = json.dumps(_finite(views), allow_nan=False, default=str).replace("</", "<\\/")
-    page = TEMPLATE.read_text(encoding="utf-8")
     subs = {
         "__TITLE__": e(title),
         "__DESCRIPTION__": e(description),
@@ -372,12 +371,48 @@ def write_report(
         "__RUNS__": _runs_html(runs),
         "__SECTIONS__": "\n".join(sections),
     }
+    return _write_page(Path(path), _fill_template(subs, views, js, css))
+
+
+def _section(i: int, dataset: str, rs: list[dict], view: dict, gallery: str, tables, plots) -> str:
+    """The HTML section of one query set: the map, its gallery, its tables and plots."""
+    e = html.escape
+    ts = "".join(t.html() for t in tables if getattr(t, "dataset", dataset) == dataset)
+    ps = "".join(
+        f"<figure class=plot><img src='{png_data_uri(p.path)}' data-full='' alt='{e(p.title)}'>"
+        f"<figcaption>{e(p.title)}</figcaption></figure>"
+        for p in plots
+        if p.dataset == dataset
+    )
+    n_q = max((r.get("n_queries") or 0) for r in rs)
+    note = (
+        f"<p class=warn>map imagery unavailable: {e(view.get('overlay_error', ''))}</p>"
+        if view.get("overlay_error")
+        else ""
+    )
+    return (
+        f"<section id=ds{i}><h2>{e(dataset)}</h2>"
+        f"<p class=sub>map <code>{e(rs[0]['map'])}</code> · {n_q} queries · {len(rs)} configurations</p>"
+        f"<h3>Ground truth vs estimate</h3><p class=hint>White dots: ground truth; coloured dots: estimates, "
+        f"joined by a line, coloured by error; grey rings: not localized. Click a point for details.</p>{note}"
+        f"<label class=picker>configuration <select id=map{i}-pick></select></label>"
+        f"<div class=map id=map{i}></div>"
+        f"{gallery}<h3>Tables</h3>{ts}<h3>Plots</h3><div class=plots>{ps}</div></section>"
+    )
+
+
+def _fill_template(subs: dict, views: list[dict], js: str, css: str) -> str:
+    """The page: the template with the text placeholders replaced, then Leaflet and the map data inlined."""
+    data = json.dumps(_finite(views), allow_nan=False, default=str).replace("</", "<\\/")
+    page = TEMPLATE.read_text(encoding="utf-8")
     for k, v in subs.items():
         page = page.replace(k, v)
     # code last: it must not be searched for placeholders
     page = page.replace("/*__LEAFLET_CSS__*/", css).replace("/*__DATA__*/", data)
-    page = page.replace("/*__LEAFLET_JS__*/", js.replace("</script", "<\\/script"))
-    path = Path(path)
+    return page.replace("/*__LEAFLET_JS__*/", js.replace("</script", "<\\/script"))
+
+
+def _write_page(path: Path, page: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".part")
     tmp.write_text(page, encoding="utf-8")

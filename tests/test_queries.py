@@ -1,4 +1,5 @@
-"""queries.py: the three query-set shapes on real data and hand-made files; bad files are AerolocErrors."""
+"""queries.py: the three query-set shapes on real data and hand-made files; bad files are AerolocErrors; truth
+and priors kept apart (the priors themselves: test_priors.py)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,29 @@ def test_naip_csv_with_images_in_queries_folder(naip_dev):
         assert q.extra["footprint_m"] == r["footprint_m"] and q.extra["date"] == r["date"]
     # the folder holding queries.csv is the same query set
     assert [(q.name, q.lat, q.lon) for q in load_queries(naip_dev.parent)] == [(q.name, q.lat, q.lon) for q in qs]
+
+
+def test_truth_is_kept_apart_from_priors(naip_dev, toledo_queries):
+    qs = load_queries(naip_dev)
+    rows = _csv_rows(naip_dev)
+    for i, (q, r) in enumerate(zip(qs, rows)):
+        assert q.truth_heading_deg == q.heading_deg == float(r["heading_deg"]) and q.truth_gsd_m == 5.0
+        assert not q.priors.known and q.origin == f"{naip_dev}:{i + 2}"  # generated set: no truth as prior
+    assert all(q.priors.heading_deg == q.truth_heading_deg % 360 for q in load_queries(naip_dev, priors="exact"))
+    # Toledo's alt_m is the GPS altitude above sea level: kept, never a height above ground
+    assert all(q.alt_m and q.priors.alt_agl_m is None and q.priors.gsd_m is None for q in load_queries(toledo_queries))
+
+
+def test_seed_queries_txt_priors_from_exif(tmp_path):
+    exif = Image.Exif()
+    exif[0x8769] = {0xA405: 24}
+    (tmp_path / "queries").mkdir()
+    Image.new("RGB", (64, 48)).save(tmp_path / "queries" / "q0.jpg", exif=exif)
+    (tmp_path / "queries.txt").write_text("filename lon lat\nq0.jpg -99.15 47.02\n")
+    (q,) = load_queries(tmp_path)
+    assert q.priors.hfov_deg == pytest.approx(2 * math.degrees(math.atan(36 / 48))) and q.priors.width_px == 64
+    assert q.priors.gsd_m is None and q.origin.endswith("queries.txt:2")
+    assert load_queries(tmp_path, priors="none")[0].priors.hfov_deg is None
 
 
 def test_toledo_csv_with_images_in_photos_folder(toledo_queries):

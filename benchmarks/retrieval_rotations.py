@@ -21,9 +21,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aeroloc.bench.metrics import Result, evaluate, tile_contains
+from aeroloc.bench.metrics import evaluate, tile_contains
 from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
+from aeroloc.localization.results import Localization
 from aeroloc.maps.tiling import write_tiles
 from aeroloc.retrieval.database import Database, build_global
 from aeroloc.retrieval.retriever import Retriever
@@ -44,7 +45,7 @@ def run_set(db: Database, retriever: Retriever, queries, images, k: int) -> dict
     for q, im in zip(queries, images):
         r = retriever(im, max(NS), rotations=k)
         lat, lon = db.by_id[r.tile_ids[0]].centre_latlon
-        results.append(Result(q.name, lat, lon, tuple(r.tile_ids)))
+        results.append(Localization(q.name, lat, lon, top_tiles=list(r.tile_ids)))
         t_desc.append(r.times_ms["descriptor"])
     m = evaluate(results, queries, db.tiles, ns=NS)
     return {

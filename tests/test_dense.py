@@ -187,10 +187,15 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     the local-feature fallback."""
     from aeroloc.bench.metrics import tile_contains
     from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
+    from aeroloc.localization.run import localize_queries
     from aeroloc.retrieval.database import Database
 
+    def options(**kw):  # north-up: the re-ranker at the upright heading, the dense stage within ±15°
+        return LocalizeOptions(top_n=5, method="xfeat-vlad", rerank="xfeat-lighterglue", north_up=True, **kw)
+
     db = Database(naip_db)
-    loc = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=NAIP_GSD)
+    loc = Localizer(db, options(query_gsd=NAIP_GSD), "cpu")
     q = queries[HOPELESS_FOR_LOCAL[0]]
     res = loc(q.name, read_image(q.path), top_n=5)
     assert res.status.startswith("localized (dense"), res.status
@@ -198,24 +203,14 @@ def test_the_localizer_tries_the_dense_stage_first_and_falls_back_to_local_featu
     assert tile_contains(db.by_id[res.top_tiles[0]], q.lat, q.lon) and len(res.top_tiles) == 1
     assert res.times_ms["align"] > 0 and res.times_ms.get("local_features", 0) == 0
     # a finished run without the resolution is not reused for one with it (the resolution is in the run's key)
-    from aeroloc.localization.localizer import localize_queries
-
     out = tmp_path / "r.csv"
-    kw = {
-        "top_n": 5,
-        "method": "xfeat-vlad",
-        "rerank": "xfeat-lighterglue",
-        "device": "cpu",
-        "progress": False,
-        "north_up": True,
-    }
-    assert localize_queries(db, [q], out, **kw)[0]["status"].startswith("not localized")
+    assert localize_queries(db, [q], out, options(), "cpu", progress=False)[0].status.startswith("not localized")
     shots = tmp_path / "matches"
-    row = localize_queries(db, [q], out, query_gsd=NAIP_GSD, save_matches=shots, **kw)[0]
-    assert row["status"].startswith("localized (dense")
+    row = localize_queries(db, [q], out, options(query_gsd=NAIP_GSD), "cpu", save_matches=shots, progress=False)[0]
+    assert row.status.startswith("localized (dense")
     shot = read_image(shots / (q.name.rsplit(".", 1)[0] + ".jpg"))  # query | map with the footprint outlined
     assert shot.shape[0] == 480 and shot.shape[1] > 700
-    toledo = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu", {"rotations": [0]}, query_gsd=2.5)
+    toledo = Localizer(db, options(query_gsd=2.5), "cpu")
     res = toledo("toledo", read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG"), top_n=5)
     assert res.status.startswith("not localized") and np.isnan(res.lat), res.status
 

@@ -36,8 +36,9 @@ def queries(naip_dev):
 @pytest.fixture(scope="module")
 def localizer(db):
     from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
 
-    return Localizer(db, METHOD, RERANK, "cpu")
+    return Localizer(db, LocalizeOptions(method=METHOD, rerank=RERANK), "cpu")
 
 
 @pytest.mark.slow
@@ -68,12 +69,17 @@ def test_images_not_in_the_map_are_not_localized(localizer, data_dir, queries):
 
 @pytest.mark.slow
 def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path, monkeypatch):
-    import aeroloc.localization.localizer as loc
+    import aeroloc.localization.localizer as localizer_mod
+    import aeroloc.localization.run as loc
+    from aeroloc.localization.options import LocalizeOptions
+
+    opts = LocalizeOptions(top_n=3, method=METHOD, rerank=RERANK)
+    opts4 = LocalizeOptions(top_n=4, method=METHOD, rerank=RERANK)
 
     qs = [queries[n] for n in GOOD[:2]]
     out = tmp_path / "results.csv"
     part = tmp_path / "results.csv.part"
-    real_call = loc.Localizer.__call__
+    real_call = localizer_mod.Localizer.__call__
     calls = []
 
     def killed_after_one(self, name, *a, **kw):
@@ -82,9 +88,9 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
         calls.append(name)
         return real_call(self, name, *a, **kw)
 
-    monkeypatch.setattr(loc.Localizer, "__call__", killed_after_one)
+    monkeypatch.setattr(localizer_mod.Localizer, "__call__", killed_after_one)
     with pytest.raises(KeyboardInterrupt):
-        loc.localize_queries(db, qs, out, top_n=3, method=METHOD, rerank=RERANK, device="cpu", progress=False)
+        loc.localize_queries(db, qs, out, opts, device="cpu", progress=False)
     assert not out.exists() and part.is_file()
     with open(part, newline="") as f:
         first = list(csv.DictReader(f))
@@ -96,14 +102,14 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
         calls.append(name)
         return real_call(self, name, *a, **kw)
 
-    monkeypatch.setattr(loc.Localizer, "__call__", counted)
-    rows = loc.localize_queries(db, qs, out, top_n=3, method=METHOD, rerank=RERANK, device="cpu", progress=False)
+    monkeypatch.setattr(localizer_mod.Localizer, "__call__", counted)
+    rows = loc.localize_queries(db, qs, out, opts, device="cpu", progress=False)
     assert calls == [GOOD[1]]  # the first query was not recomputed
-    assert [r["name"] for r in rows] == GOOD[:2] and rows[0] == first[0]
+    assert [r.name for r in rows] == GOOD[:2] and rows[0].row() == first[0]
     assert out.is_file() and not part.exists()
     with open(out, newline="") as f:
         on_disk = list(csv.DictReader(f))
-    assert on_disk == rows and all(r["status"] == "localized" for r in on_disk)
+    assert on_disk == [r.row() for r in rows] and all(r["status"] == "localized" for r in on_disk)
     for r in on_disk:
         q = queries[r["name"]]
         assert geo.geodesic_distance(q.lat, q.lon, float(r["lat"]), float(r["lon"])) < 25.0
@@ -115,23 +121,24 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
         raise Boom("the pipeline was run again")
 
     monkeypatch.setattr(loc, "Localizer", no_localizer)
-    again = loc.localize_queries(db, qs, out, top_n=3, method=METHOD, rerank=RERANK, device="cpu", progress=False)
+    again = loc.localize_queries(db, qs, out, opts, device="cpu", progress=False)
     assert again == rows  # same configuration finished before: read back, nothing rerun
     with pytest.raises(Boom):  # another configuration (top-N) must not reuse those rows
-        loc.localize_queries(db, qs, out, top_n=4, method=METHOD, rerank=RERANK, device="cpu", progress=False)
+        loc.localize_queries(db, qs, out, opts4, device="cpu", progress=False)
 
 
-def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):
+def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):
     import subprocess
     import sys
 
     from aeroloc.core.errors import AerolocError
-    from aeroloc.localization.localizer import heading_conf
+    from aeroloc.localization.options import LocalizeOptions
 
-    assert heading_conf({"max_verify": 2}, True, 1) == {"max_verify": 2, "rotations": [0]}
-    assert heading_conf(None, False, 4) is None
+    north = LocalizeOptions(north_up=True, rerank_overrides={"max_verify": 2})
+    assert north.cascade_overrides() == {"max_verify": 2, "rotations": [0]}
+    assert LocalizeOptions(rotations=4).cascade_overrides() is None
     with pytest.raises(AerolocError, match="north-up queries need no rotation search"):
-        heading_conf(None, True, 4)
+        LocalizeOptions(north_up=True, rotations=4)
     out = tmp_path / "r.csv"
     p = subprocess.run(
         [
@@ -161,9 +168,10 @@ def test_heading_conf_and_the_cli_refuse_contradicting_heading_options(naip_dev,
 def test_north_up_costs_one_extraction_and_a_turned_query_is_not_localized(db, queries, monkeypatch):
     """With the heading known, the re-ranker extracts the query once; a query that is in fact turned by a quarter
     finds no verified match at the upright heading and is reported "not localized", not put somewhere wrong."""
-    from aeroloc.localization.localizer import Localizer, heading_conf
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
 
-    loc = Localizer(db, METHOD, RERANK, "cpu", heading_conf(None, True, 1))
+    loc = Localizer(db, LocalizeOptions(method=METHOD, rerank=RERANK, north_up=True), "cpu")
     calls = []
     real = loc.reranker.extractor.extract
     monkeypatch.setattr(loc.reranker.extractor, "extract", lambda im, mask=None: calls.append(1) or real(im, mask=mask))

@@ -12,10 +12,11 @@ import pytest
 from affine import Affine
 from pyproj import Geod, Transformer
 
-from aeroloc.bench.metrics import Result, evaluate, first_hit, read_results, tile_contains
+from aeroloc.bench.metrics import evaluate, first_hit, tile_contains
 from aeroloc.cli import main
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.queries import Query
+from aeroloc.localization.results import Localization, read_localizations
 from aeroloc.maps.tiling import CSV_COLUMNS, Tile, tile_row
 
 UTM = "EPSG:26914"
@@ -60,11 +61,11 @@ def _results():
     for name, err in ERRORS.items():
         lat, lon = TRUTH[name]
         if err is None:
-            out.append(Result(name, math.nan, math.nan, tuple(TOPS[name])))
+            out.append(Localization(name, math.nan, math.nan, top_tiles=list(TOPS[name])))
         else:
             lon2, lat2, _ = _geod.fwd(lon, lat, 30.0, err)
-            out.append(Result(name, lat2, lon2, tuple(TOPS[name])))
-    out.append(Result("not_a_query", 47.0, -99.0, ("A",)))  # ignored: no ground truth for it
+            out.append(Localization(name, lat2, lon2, top_tiles=list(TOPS[name])))
+    out.append(Localization("not_a_query", 47.0, -99.0, top_tiles=["A"]))  # ignored: no ground truth for it
     return out
 
 
@@ -133,7 +134,7 @@ def test_all_missing_and_no_tiles():
 
 
 def test_recall_keys_follow_the_list_length():
-    res = [Result("q0", math.nan, math.nan, tuple(["B"] * 11 + ["A"]))]
+    res = [Localization("q0", math.nan, math.nan, top_tiles=["B"] * 11 + ["A"])]
     m = evaluate(res, _queries(), TILES)
     assert m["vpr_recall@10"] == 0 and m["vpr_recall@12"] == pytest.approx(1 / 7)
 
@@ -159,18 +160,18 @@ def _write_case(tmp_path):
     return db
 
 
-def test_read_results(tmp_path):
+def test_read_localizations(tmp_path):
     _write_case(tmp_path)
-    res = {r.name: r for r in read_results(tmp_path / "results.csv")}
-    assert res["q1"].top_tiles == ("B", "A") and not res["q4"].localized and res["q0"].localized
+    res = {r.name: r for r in read_localizations(tmp_path / "results.csv")}
+    assert res["q1"].top_tiles == ["B", "A"] and not res["q4"].localized and res["q0"].localized
     (tmp_path / "bad.csv").write_text("name,lat\nq0,1\n")
     with pytest.raises(AerolocError, match=r"bad.csv: missing columns \['lon'\]"):
-        read_results(tmp_path / "bad.csv")
+        read_localizations(tmp_path / "bad.csv")
     (tmp_path / "bad2.csv").write_text("name,lat,lon\nq0,47.0,west\n")
     with pytest.raises(AerolocError, match=r"bad2.csv:2"):
-        read_results(tmp_path / "bad2.csv")
+        read_localizations(tmp_path / "bad2.csv")
     with pytest.raises(AerolocError, match=r"none\.csv"):
-        read_results(tmp_path / "none.csv")
+        read_localizations(tmp_path / "none.csv")
 
 
 def test_cli_evaluate_writes_the_documented_json(tmp_path, capsys):

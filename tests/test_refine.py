@@ -72,11 +72,12 @@ def test_weak_tile_match_passes_on_its_map_window(db, naip_dev):
     from aeroloc.localization.alignment import align
     from aeroloc.localization.cascade import Candidate
     from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
     from aeroloc.matching.features import extract
 
     q = {q.name: q for q in load_queries(naip_dev)}["naip_20120731_n_006.jpg"]
     image = read_image(q.path)
-    loc = Localizer(db, "xfeat-vlad", "xfeat-lighterglue", "cpu")
+    loc = Localizer(db, LocalizeOptions(method="xfeat-vlad", rerank="xfeat-lighterglue"), "cpu")
     rr = loc.reranker
     qf = extract(rr.extractor, image, rr.conf["query_side"])
     size = (image.shape[1], image.shape[0])

@@ -153,7 +153,7 @@ def test_quarter_turned_real_queries_are_found(db, retriever, data_dir):
 
 
 def test_bad_rotations_are_rejected(db, naip_dev, tmp_path):
-    from aeroloc.localization.localizer import localize_queries
+    from aeroloc.localization.options import LocalizeOptions
 
     for bad in (0, -4, 2.5, True):
         with pytest.raises(AerolocError, match="rotations must be an integer >= 1"):
@@ -161,19 +161,23 @@ def test_bad_rotations_are_rejected(db, naip_dev, tmp_path):
     r = Retriever(db, METHOD, "cpu")
     with pytest.raises(AerolocError, match="rotations"):
         r(np.zeros((64, 64, 3), np.uint8), 5, rotations=0)
-    out = tmp_path / "r.csv"
     with pytest.raises(AerolocError, match="rotations"):
-        localize_queries(db, load_queries(naip_dev)[:1], out, method=METHOD, rerank=None, rotations=0)
+        LocalizeOptions(method=METHOD, rerank=None, rotations=0)
     assert not list(tmp_path.iterdir())  # nothing written
 
 
 def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeypatch):
-    import aeroloc.localization.localizer as loc
+    import aeroloc.localization.run as loc
+    from aeroloc.localization.options import LocalizeOptions
 
     qs = load_queries(naip_dev)[:1]
     out = tmp_path / "r.csv"
-    kw = {"top_n": 3, "method": METHOD, "rerank": None, "device": "cpu", "progress": False}
-    first = loc.localize_queries(db, qs, out, rotations=1, **kw)
+
+    def opts(rotations):
+        return LocalizeOptions(top_n=3, method=METHOD, rerank=None, rotations=rotations)
+
+    kw = {"device": "cpu", "progress": False}
+    first = loc.localize_queries(db, qs, out, opts(1), **kw)
 
     class Boom(Exception):
         pass
@@ -182,9 +186,9 @@ def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeyp
         raise Boom("the pipeline was run again")
 
     monkeypatch.setattr(loc, "Localizer", no_localizer)
-    assert loc.localize_queries(db, qs, out, rotations=1, **kw) == first  # same configuration: cached
+    assert loc.localize_queries(db, qs, out, opts(1), **kw) == first  # same configuration: cached
     with pytest.raises(Boom):
-        loc.localize_queries(db, qs, out, rotations=4, **kw)
+        loc.localize_queries(db, qs, out, opts(4), **kw)
 
 
 def aeroloc(*args) -> subprocess.CompletedProcess:

@@ -1,4 +1,5 @@
-"""Scores of localization results.
+"""Scores of localization results (:class:`aeroloc.localization.results.Localization`, as ``aeroloc localize``
+returns and writes them; :func:`aeroloc.localization.results.read_localizations` reads a results CSV).
 
 - VPR Recall@N: the ground-truth centre lies inside one of the top-N tiles (tested in the map's CRS through
   each tile's exact affine transform, boundaries inclusive).
@@ -11,54 +12,19 @@
 
 from __future__ import annotations
 
-import csv
 import math
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from aeroloc.core import geo
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.queries import Query
+from aeroloc.localization.results import Localization
 from aeroloc.maps.tiling import Tile
 
 EPS_PX = 1e-6
 DEFAULT_NS = (1, 5, 10)
 DEFAULT_THRESHOLDS = (10.0, 25.0, 50.0, 100.0)
-
-
-@dataclass
-class Result:
-    name: str
-    lat: float = math.nan  # estimate; NaN = not localized
-    lon: float = math.nan
-    top_tiles: tuple[str, ...] = ()
-
-    @property
-    def localized(self) -> bool:
-        return math.isfinite(self.lat) and math.isfinite(self.lon)
-
-
-def read_results(path) -> list[Result]:
-    path = Path(path)
-    if not path.is_file():
-        raise AerolocError(f"{path}: results file not found")
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = {"name", "lat", "lon"} - set(reader.fieldnames or [])
-        if missing:
-            raise AerolocError(f"{path}: missing columns {sorted(missing)} (need name,lat,lon[,top_tiles])")
-        out = []
-        for i, r in enumerate(reader, start=2):
-            try:
-                lat = float(r["lat"]) if (r["lat"] or "").strip() not in ("", "nan") else math.nan
-                lon = float(r["lon"]) if (r["lon"] or "").strip() not in ("", "nan") else math.nan
-            except ValueError:
-                raise AerolocError(f"{path}:{i}: lat/lon {r['lat']!r},{r['lon']!r} are not numbers") from None
-            tiles = tuple(t for t in (r.get("top_tiles") or "").split(";") if t)
-            out.append(Result(r["name"], lat, lon, tiles))
-    return out
 
 
 def tile_contains(tile: Tile, lat: float, lon: float) -> bool:
@@ -76,7 +42,7 @@ def first_hit(top: tuple[str, ...], tiles: dict[str, Tile], lat: float, lon: flo
 
 
 def evaluate(
-    results: list[Result], queries: list[Query], tiles: list[Tile] | None, thresholds=DEFAULT_THRESHOLDS, ns=None
+    results: list[Localization], queries: list[Query], tiles: list[Tile] | None, thresholds=DEFAULT_THRESHOLDS, ns=None
 ) -> dict:
     """Metrics as fractions in [0, 1] (keys documented in the module docstring and the README)."""
     truth = [q for q in queries if q.has_truth]
@@ -91,7 +57,7 @@ def evaluate(
     hits, errors, dist_rank = [], [], {d: [] for d in thresholds}
     per_query = []
     for q in truth:
-        r = by_name.get(q.name, Result(q.name))
+        r = by_name.get(q.name) or Localization(q.name)
         hit = first_hit(r.top_tiles, tile_map, q.lat, q.lon) if tile_map else None
         hits.append(hit)
         err = float(geo.geodesic_distance(q.lat, q.lon, r.lat, r.lon)) if r.localized else math.inf

@@ -41,17 +41,9 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from aeroloc.bench.metrics import evaluate, read_results
-    from aeroloc.commands.tiles import summary
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
-    from aeroloc.core.queries import load_queries
-    from aeroloc.localization.localizer import localize_queries
-    from aeroloc.maps.tiling import write_tiles
-    from aeroloc.matching.features import build_local
     from aeroloc.matching.registry import DEFAULT_RERANKER
-    from aeroloc.retrieval.database import Database, build_global
-    from aeroloc.retrieval.models import DEFAULT_METHOD
 
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
@@ -61,51 +53,64 @@ def run(args) -> int:
     lines = []
     for name, map_rel, q_rel, zoom, overlap, tile_m, north_up, query_gsd in DEMO_SETS:
         print(f"\n== {name} ==")
-        db_dir = out / Path(map_rel).parent.name
-        t0 = time.perf_counter()
-        tiles_report = write_tiles(data / map_rel, db_dir, zoom, overlap, tile_m)
-        print(summary(tiles_report, db_dir))
-        db = Database(db_dir)
-        g = build_global(db, DEFAULT_METHOD, device=device)
-        build_local(db, rerank, device)
-        print(
-            f"database: {DEFAULT_METHOD} {g.dim}-d descriptors + {rerank} features in {time.perf_counter() - t0:.1f} s"
-        )
-        queries = load_queries(data / q_rel)[: args.limit]
-        csv_path = out / f"{db_dir.name}-results.csv"
-        t0 = time.perf_counter()
-        rows = localize_queries(
-            db,
-            queries,
-            csv_path,
-            args.top_n,
-            1,
-            DEFAULT_METHOD,
-            rerank,
-            device,
-            save_matches=out / f"{db_dir.name}-matches",
-            north_up=north_up,
-            query_gsd=query_gsd,
-        )
-        dt = time.perf_counter() - t0
-        m = evaluate(read_results(csv_path), queries, db.tiles, (10, 25, 50, 100))
-        before = evaluate([_retrieved(r) for r in rows], queries, db.tiles, (10, 25, 50, 100))
-        ms = sum(float(r["total_ms"]) for r in rows) / max(1, len(rows))
-        med = "n/a" if m["median_error_m"] is None else f"{m['median_error_m']:.1f} m"
-        line = (
-            f"{name}: {len(rows)} queries | VPR R@1 {before['vpr_recall@1']:.2f} -> {m['vpr_recall@1']:.2f} "
-            f"after re-ranking (R@10 {before.get('vpr_recall@10', float('nan')):.2f}) | Georef R@10m "
-            f"{m['georef_recall@10m']:.2f} R@25m {m['georef_recall@25m']:.2f} R@50m {m['georef_recall@50m']:.2f}"
-            f" | median error {med} | not localized {m['not_localized']:.2f} | {ms / 1000:.2f} s/query"
-        )
-        print(line)
-        print(f"results: {csv_path}  ({dt:.0f} s); match images: {out / (db_dir.name + '-matches')}")
+        db = _database(data / map_rel, out / Path(map_rel).parent.name, zoom, overlap, tile_m, rerank, device)
+        options = _options(args, rerank, north_up, query_gsd)
+        line = _localize_set(name, db, data / q_rel, out, options, device, args.limit)
         lines.append(line)
     print("\n== summary ==\n" + "\n".join(lines))
     return 0
 
 
-def _retrieved(row):
-    from aeroloc.bench.metrics import Result
+def _options(args, rerank: str, north_up: bool, query_gsd: float | None):
+    from aeroloc.localization.options import LocalizeOptions
+    from aeroloc.retrieval.models import DEFAULT_METHOD
 
-    return Result(row["name"], top_tiles=tuple(t for t in row["retrieved_tiles"].split(";") if t))
+    return LocalizeOptions(
+        top_n=args.top_n, top_k=1, method=DEFAULT_METHOD, rerank=rerank, north_up=north_up, query_gsd=query_gsd
+    )
+
+
+def _database(map_path: Path, db_dir: Path, zoom, overlap, tile_m, rerank: str, device):
+    """The set's tiles, descriptors and local features (cached in ``db_dir``)."""
+    from aeroloc.commands.tiles import summary
+    from aeroloc.maps.tiling import write_tiles
+    from aeroloc.matching.features import build_local
+    from aeroloc.retrieval.database import Database, build_global
+    from aeroloc.retrieval.models import DEFAULT_METHOD
+
+    t0 = time.perf_counter()
+    info = write_tiles(map_path, db_dir, zoom, overlap, tile_m)
+    print(summary(info, db_dir))
+    db = Database(db_dir)
+    g = build_global(db, DEFAULT_METHOD, device=device)
+    build_local(db, rerank, device)
+    print(
+        f"database: {DEFAULT_METHOD} {g.dim}-d descriptors + {rerank} features in {time.perf_counter() - t0:.1f} s"
+    )
+    return db
+
+
+def _localize_set(name: str, db, queries_path: Path, out: Path, options, device, limit) -> str:
+    """Localize and score one query set; returns its summary line."""
+    from aeroloc.bench.pipeline import score
+    from aeroloc.core.queries import load_queries
+    from aeroloc.localization.run import localize_queries
+
+    queries = load_queries(queries_path)[:limit]
+    stem = db.folder.name
+    csv_path, matches = out / f"{stem}-results.csv", out / f"{stem}-matches"
+    t0 = time.perf_counter()
+    results = localize_queries(db, queries, csv_path, options, device, save_matches=matches)
+    dt = time.perf_counter() - t0
+    m = score(results, queries, db.tiles, (10, 25, 50, 100))
+    ms = sum(r.total_ms for r in results) / max(1, len(results))
+    med = "n/a" if m["median_error_m"] is None else f"{m['median_error_m']:.1f} m"
+    line = (
+        f"{name}: {len(results)} queries | VPR R@1 {m['retrieval_vpr_recall@1']:.2f} -> {m['vpr_recall@1']:.2f} "
+        f"after re-ranking (R@10 {m.get('retrieval_vpr_recall@10', float('nan')):.2f}) | Georef R@10m "
+        f"{m['georef_recall@10m']:.2f} R@25m {m['georef_recall@25m']:.2f} R@50m {m['georef_recall@50m']:.2f}"
+        f" | median error {med} | not localized {m['not_localized']:.2f} | {ms / 1000:.2f} s/query"
+    )
+    print(line)
+    print(f"results: {csv_path}  ({dt:.0f} s); match images: {matches}")
+    return line

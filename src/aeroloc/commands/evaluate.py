@@ -27,11 +27,12 @@ def parse_thresholds(text: str) -> tuple[float, ...]:
 
 
 def run(args) -> int:
-    from aeroloc.bench.metrics import evaluate, format_table, read_results
+    from aeroloc.bench.metrics import evaluate, format_table
     from aeroloc.core.queries import load_queries
+    from aeroloc.localization.results import read_localizations
     from aeroloc.maps.tiling import load_tiles
 
-    results = read_results(args.results)
+    results = read_localizations(args.results)
     queries = load_queries(args.truth, require_images=False)
     tiles = load_tiles(args.tiles) if args.tiles else None
     metrics = evaluate(results, queries, tiles, parse_thresholds(args.thresholds))

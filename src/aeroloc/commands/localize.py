@@ -57,43 +57,39 @@ def add_arguments(p):
     add_trust_argument(p)
 
 
+def options_from_args(args):
+    """The validated localize options the command line asks for (every check in LocalizeOptions)."""
+    from aeroloc.localization.options import LocalizeOptions
+
+    rerank = None if args.rerank in ("none", "") else args.rerank
+    return LocalizeOptions(
+        top_n=args.top_n,
+        top_k=args.top_k,
+        method=args.method,
+        rerank=rerank,
+        rerank_overrides={"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None,
+        rotations=args.rotations,
+        north_up=args.north_up,
+        query_gsd=args.query_gsd,
+    )
+
+
 def run(args) -> int:
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
     from aeroloc.core.queries import load_queries
-    from aeroloc.localization.dense_stage import check_query_gsd
-    from aeroloc.localization.localizer import heading_conf, localize_queries
-    from aeroloc.matching.registry import rerank_conf
+    from aeroloc.localization.run import localize_queries
     from aeroloc.retrieval.database import Database
 
     if args.top_n < 1 or args.top_k < 1:
         raise AerolocError("--top-n and --top-k must be >= 1")
     if args.rotations < 1:
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
-    heading_conf(None, args.north_up, args.rotations)  # contradicting heading options fail before any work
-    check_query_gsd(args.query_gsd)
-    rerank = None if args.rerank in ("none", "") else args.rerank
-    if rerank:
-        rerank_conf(rerank)  # an unknown name fails before the database and queries are read
+    options = options_from_args(args)  # bad or contradicting options fail before the database and queries are read
     trust_from_args(args)
     db = Database(args.db)
     queries = load_queries(args.queries)
-    conf = {"refine_outside": REFINE_OUTSIDE} if args.refine_window and rerank else None
-    rows = localize_queries(
-        db,
-        queries,
-        args.out,
-        args.top_n,
-        args.top_k,
-        args.method,
-        rerank,
-        pick_device(args.device),
-        rerank_conf=conf,
-        save_matches=args.save_matches,
-        rotations=args.rotations,
-        north_up=args.north_up,
-        query_gsd=args.query_gsd,
-    )
-    n_loc = sum(1 for r in rows if r["lat"])
-    print(f"{n_loc}/{len(rows)} queries localized -> {args.out}")
+    results = localize_queries(db, queries, args.out, options, pick_device(args.device), save_matches=args.save_matches)
+    n_loc = sum(r.localized for r in results)
+    print(f"{n_loc}/{len(results)} queries localized -> {args.out}")
     return 0

@@ -70,3 +70,64 @@ def write_csv_atomic(path: str | os.PathLike, fieldnames: list[str], rows) -> No
         w = csv.DictWriter(f, fieldnames=fieldnames)
         w.writeheader()
         w.writerows(rows)
+
+
+class ResumableCSV:
+    """A results CSV written one row at a time, so an interrupted run resumes where it stopped.
+
+    Rows go to ``OUT.part`` and are flushed as they come; ``OUT.config`` holds the run's ``signature`` (a string
+    naming everything the rows depend on). A later run with the same signature keeps the finished rows and
+    appends the rest; another signature starts afresh. The final file appears by rename, and ``OUT.done``
+    (the signature again) marks it complete, so the same run asked for twice reads it back instead.
+    """
+
+    def __init__(self, path: str | os.PathLike, columns: list[str], signature: str):
+        self.path, self.columns, self.signature = Path(path), list(columns), signature
+        self.part = self.path.with_name(self.path.name + ".part")
+        self.sig_path = self.path.with_name(self.path.name + ".config")
+        self.done_path = self.path.with_name(self.path.name + ".done")
+        self._file = self._writer = None
+
+    def finished(self) -> list[dict] | None:
+        """The rows of a complete file written with this signature, else None."""
+        if self.path.is_file() and self.done_path.is_file() and self.done_path.read_text() == self.signature:
+            return _read_rows(self.path)
+        return None
+
+    def start(self) -> list[dict]:
+        """Open for appending; returns the rows already finished by an interrupted run of the same signature."""
+        import csv
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.done_path.unlink(missing_ok=True)
+        same = self.part.is_file() and self.sig_path.is_file() and self.sig_path.read_text() == self.signature
+        rows = _read_rows(self.part) if same else []
+        self.sig_path.write_text(self.signature)
+        self._file = open(self.part, "a" if rows else "w", newline="")  # noqa: SIM115 (open across write() calls)
+        self._writer = csv.DictWriter(self._file, fieldnames=self.columns)
+        if not rows:
+            self._writer.writeheader()
+        return rows
+
+    def write(self, row: dict) -> None:
+        self._writer.writerow(row)
+        self._file.flush()
+
+    def finish(self) -> None:
+        """Rename the finished rows into place and mark them complete."""
+        self._file.close()
+        os.replace(self.part, self.path)
+        self.done_path.write_text(self.signature)
+        self.sig_path.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        """Stop without finishing (the rows so far stay in ``.part`` for a resume)."""
+        if self._file is not None and not self._file.closed:
+            self._file.close()
+
+
+def _read_rows(path: Path) -> list[dict]:
+    import csv
+
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))

@@ -1,0 +1,36 @@
+"""Everything a :class:`~aeroloc.localization.localizer.Localizer` needs, built (or found cached) in one call:
+tiles, global descriptors + index, and the re-ranker's tile features."""
+
+from __future__ import annotations
+
+from aeroloc.matching.registry import DEFAULT_RERANKER
+from aeroloc.retrieval.models import DEFAULT_METHOD
+
+
+def build_database(
+    map_path,
+    out_dir,
+    zoom: float = 1.0,
+    overlap: float = 0.5,
+    tile_m: float | None = None,
+    method: str = DEFAULT_METHOD,
+    rerank: str | None = DEFAULT_RERANKER,
+    device="auto",
+    progress: bool = False,
+):
+    """The database of ``map_path`` (GeoTIFF, tile folder or XYZ folder) in ``out_dir``: tiles at ``zoom`` /
+    ``overlap`` (or ``tile_m`` metres a side), ``method`` descriptors, ``rerank`` features. Every part is cached
+    and resumable, so calling it again costs only the checks. Returns the opened
+    :class:`~aeroloc.retrieval.database.Database`."""
+    from aeroloc.core.device import pick_device
+    from aeroloc.maps.tiling import write_tiles
+    from aeroloc.matching.features import build_local
+    from aeroloc.retrieval.database import Database, build_global
+
+    device = pick_device(device)
+    write_tiles(map_path, out_dir, zoom, overlap, tile_m, progress=progress)
+    db = Database(out_dir)
+    build_global(db, method, device=device, progress=progress)
+    if rerank:
+        build_local(db, rerank, device, progress=progress)
+    return db

@@ -1,0 +1,97 @@
+"""How to localize: one frozen, validated settings object for the CLI, the Python API and the benchmark.
+
+Every check lives in :meth:`LocalizeOptions.__post_init__`, so a bad or contradictory setting fails once, with
+one message, before any file is touched, wherever the options come from.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from aeroloc.core.errors import AerolocError
+from aeroloc.localization.dense_stage import check_query_gsd
+from aeroloc.matching.registry import DEFAULT_RERANKER, rerank_conf
+from aeroloc.retrieval.retriever import check_rotations
+
+
+@dataclass(frozen=True)
+class LocalizeOptions:
+    """``top_n`` candidates retrieved, ``top_k`` kept after re-ranking (0 = all); ``method`` the retrieval method
+    (None: the database's default); ``rerank`` the re-ranker (None: retrieval only, the best tile's centre);
+    ``rerank_overrides`` of its cascade settings (aeroloc.matching.registry); ``rotations`` > 1 retrieves with the
+    query at that many headings; ``north_up`` for queries known to be north-up within about ±45° (no 90° rotation
+    search; the dense stage searches ±15°); ``query_gsd`` (metres per query pixel) turns the dense structural
+    stage on; ``dense_overrides`` of its settings (aeroloc.matching.dense.DEFAULTS)."""
+
+    top_n: int = 20
+    top_k: int = 1
+    method: str | None = None
+    rerank: str | None = DEFAULT_RERANKER
+    rerank_overrides: dict[str, Any] | None = field(default=None, hash=False)
+    rotations: int = 1
+    north_up: bool = False
+    query_gsd: float | None = None
+    dense_overrides: dict[str, Any] | None = field(default=None, hash=False)
+
+    def __post_init__(self):
+        if not isinstance(self.top_n, int) or self.top_n < 1:
+            raise AerolocError(f"top-n must be an integer >= 1, got {self.top_n!r}")
+        if not isinstance(self.top_k, int) or self.top_k < 0:
+            raise AerolocError(f"top-k must be an integer >= 0 (0 = every candidate), got {self.top_k!r}")
+        object.__setattr__(self, "rotations", check_rotations(self.rotations))
+        if self.north_up and self.rotations != 1:
+            raise AerolocError(
+                f"--north-up and --rotations > 1 contradict each other: north-up queries need no rotation "
+                f"search, but rotations={self.rotations} was asked for"
+            )
+        object.__setattr__(self, "query_gsd", check_query_gsd(self.query_gsd))
+        if self.rerank in ("none", ""):
+            object.__setattr__(self, "rerank", None)
+        if self.rerank is not None:
+            rerank_conf(self.rerank, self.rerank_overrides)  # unknown names and options fail here
+        if self.query_gsd is not None and self.rerank is None:
+            raise AerolocError(
+                "the dense stage (query ground resolution) needs a re-ranker; it is off with --rerank none"
+            )
+
+    def cascade_overrides(self) -> dict | None:
+        """The re-ranker overrides in effect: north-up queries need no 90° rotation search, so one query
+        extraction and no screens at wrong headings."""
+        if not self.north_up:
+            return self.rerank_overrides
+        return {**(self.rerank_overrides or {}), "rotations": [0]}
+
+    def cascade_conf(self) -> dict | None:
+        """The re-ranker's full effective settings (None for retrieval only)."""
+        return rerank_conf(self.rerank, self.cascade_overrides()) if self.rerank else None
+
+    def dense_conf(self) -> dict | None:
+        """The dense stage's settings in effect (headings around north when ``north_up``), None when off."""
+        if self.query_gsd is None:
+            return None
+        from aeroloc.matching.dense import heading_angles
+
+        return heading_angles(self.dense_overrides, self.north_up)
+
+    def signature(self, db, query_names: list[str], query_scale: float) -> str:
+        """Everything a results file depends on, as a string: a run resumes or reuses a file only when equal."""
+        kw = dict(
+            db=str(db.folder.resolve()),
+            top_n=self.top_n,
+            top_k=self.top_k,
+            method=self.method,
+            rerank=self.rerank,
+            rerank_conf=self.cascade_conf(),
+            global_=db.meta.get("global", {}).get(self.method or db.meta.get("default_method")),
+            queries=query_names,
+            query_scale=query_scale,
+            # rotations only when searched, so the signature of an upright run stays as it was
+            **({"rotations": self.rotations} if self.rotations != 1 else {}),
+            **({"query_gsd": self.query_gsd, "dense": self.dense_conf()} if self.query_gsd is not None else {}),
+        )
+        return json.dumps(kw, sort_keys=True, default=str)
+
+    def describe(self) -> dict:
+        return asdict(self)

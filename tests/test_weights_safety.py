@@ -57,6 +57,14 @@ def test_a_plain_state_dict_loads(tmp_path):
     _assert_equal(load_state_dict(tmp_path / "legacy.pth"), state)
 
 
+def test_a_damaged_file_is_unreadable_not_untrusted(tmp_path):
+    path = tmp_path / "damaged.pth"
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(AerolocError, match="not a readable PyTorch checkpoint") as e:
+        load_state_dict(path)
+    assert "trust" not in str(e.value) and "\n" not in str(e.value)
+
+
 @pytest.mark.parametrize("what", ["object-beside-the-weights", "whole-model"])
 def test_a_pickled_object_is_refused_until_the_file_is_trusted(what, tmp_path):
     state = _state()

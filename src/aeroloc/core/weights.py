@@ -135,14 +135,22 @@ def _torch_load(path, weights_only: bool, mmap: bool):
     return torch.load(path, map_location="cpu", weights_only=weights_only)
 
 
+# what torch's weights-only unpickler says when the file asks for a Python object (not when the file is corrupt)
+_NEEDS_OBJECTS = re.compile(r"GLOBAL|Can only create new object|call reduce for unrecognized function")
+
+
 def load_checkpoint(path: str | os.PathLike, mmap: bool = False):
     """``torch.load`` on the CPU with ``weights_only=True``; a checkpoint that holds pickled Python objects is
     refused with an :class:`AerolocError` naming the file, and loaded in full only when it is trusted by name."""
     try:
         return _torch_load(path, weights_only=True, mmap=mmap)
-    except pickle.UnpicklingError as exc:  # torch's weights-only unpickler met a global it does not allow
+    except pickle.UnpicklingError as exc:  # torch's weights-only unpickler met something it does not allow
         if not is_trusted(path):
-            found = re.search(r"GLOBAL (\S+)", str(exc))
+            text = str(exc)
+            if not _NEEDS_OBJECTS.search(text):  # a damaged file: torch's own reason, without its advice
+                reason = text.split("WeightsUnpickler error:")[-1].split("Check the documentation")[0]
+                raise pickle.UnpicklingError(" ".join(reason.split())) from None
+            found = re.search(r"GLOBAL (\S+)", text)
             what = f"a pickled {found.group(1)}" if found else "pickled Python objects"
             raise AerolocError(
                 f"{path}: checkpoint holds {what}, which loads only by running code from the file; refused. "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -90,7 +91,12 @@ def test_merged_top_n_is_capped_and_descriptor_time_is_the_total(retriever, dev_
     _, image = dev_query
     r = retriever(image, 3, rotations=8)
     assert len(r.tile_ids) == 3 == len(set(r.tile_ids))
-    assert 8 * 2.5 <= r.times_ms["descriptor"] < 8 * 2.5 + 50  # the views' sum, plus turning the image (~0.1 ms)
+    # the views' sum (not the last or the largest view), plus turning the image: bounded by the turning's own
+    # cost measured here, under the same machine load, rather than by a fixed number of milliseconds
+    t0 = time.perf_counter()
+    list(retrieve.rotated_views(retriever.shrink(image), 8))
+    turning_ms = (time.perf_counter() - t0) * 1000
+    assert 8 * 2.5 <= r.times_ms["descriptor"] < 8 * 2.5 + 5 * turning_ms + 5
 
 
 def test_batched_ranking_equals_one_query_at_a_time(retriever, naip_dev):

@@ -32,11 +32,13 @@ def test_tiles_builds_a_database(tmp_path, naip_map):
     out = tmp_path / "db"
     p = run("tiles", s.path, "--zoom", "2", "--overlap", "0.5", "--out", out)
     assert p.returncode == 0, p.stderr
-    # 32 px tiles, step 16 on a 256 x 144 mosaic: 1 + ceil(224/16) = 15 columns, 1 + ceil(112/16) = 8 rows
-    assert "120 tiles (8 rows x 15 cols) of 32 px" in p.stdout
+    # the seed's raw tiles are 64 x 48 px, so zoom 2 cuts 32 x 24 px tiles (aero-vloc: raw size / zoom per axis),
+    # step 16 x 12 on a 256 x 144 mosaic: 1 + ceil(224/16) = 15 columns, 1 + ceil(120/12) = 11 rows
+    assert "165 tiles (11 rows x 15 cols) of 32x24 px" in p.stdout
     with open(out / "tiles.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 120 and all((out / r["path"]).is_file() for r in rows)
+    assert len(rows) == 165 and all((out / r["path"]).is_file() for r in rows)
+    assert {(r["width"], r["height"]) for r in rows} == {("32", "24")}
     again = run("tiles", s.path, "--zoom", "2", "--overlap", "0.5", "--out", out)
     assert again.returncode == 0 and "(cached)" in again.stdout
 

@@ -328,40 +328,7 @@ def build_priors(
     heading_tol = vals.get("heading_tol_deg", DEFAULT_HEADING_TOL_DEG)
     prefix = f"{where}: " if where else ""
 
-    # ground resolution: every way it can be had, the given value first, then derivations (user's before EXIF's)
-    ways = []  # (rank, order, gsd, how, description)
-    if "gsd_m" in vals:
-        g = vals["gsd_m"]
-        ways.append((-1, 0, g, "gsd_m", f"{_named('gsd_m', srcs['gsd_m'])} = {g:g} m/px"))
-    alt = vals.get("alt_agl_m")
-    if alt is not None and width_px:
-        a_name = f"{_named('alt_agl_m', srcs['alt_agl_m'])} = {alt:g} m"
-        if "hfov_deg" in vals:
-            g = gsd_from_hfov(alt, vals["hfov_deg"], width_px)
-            how = "alt_agl_m+hfov_deg"
-            r = max(_rank(srcs["alt_agl_m"]), _rank(srcs["hfov_deg"]))
-            desc = f"{a_name} with {_named('hfov_deg', srcs['hfov_deg'])} = {vals['hfov_deg']:g}°"
-            ways.append((r, 1, g, how, f"{desc} (giving {g:.4g} m/px at {width_px} px wide)"))
-        if "focal_mm" in vals and "sensor_w_mm" in vals:
-            g = gsd_from_focal(alt, vals["focal_mm"], vals["sensor_w_mm"], width_px)
-            how = "alt_agl_m+focal_mm+sensor_w_mm"
-            r = max(_rank(srcs[k]) for k in ("alt_agl_m", "focal_mm", "sensor_w_mm"))
-            desc = (
-                f"{a_name} with {_named('focal_mm', srcs['focal_mm'])} = {vals['focal_mm']:g} mm and "
-                f"{_named('sensor_w_mm', srcs['sensor_w_mm'])} = {vals['sensor_w_mm']:g} mm"
-            )
-            ways.append((r, 2, g, how, f"{desc} (giving {g:.4g} m/px at {width_px} px wide)"))
-    ways.sort(key=lambda w: (w[0], w[1]))
-    gsd = gsd_from = gsd_source = None
-    if ways:
-        _, _, gsd, gsd_from, first = ways[0]
-        lo, hi = gsd * (1.0 - gsd_tol), gsd * (1.0 + gsd_tol)
-        for _, _, g, _, other in ways[1:]:
-            if not lo * (1 - 1e-9) <= g <= hi * (1 + 1e-9):
-                raise AerolocError(
-                    f"{prefix}{first} contradicts {other}: more than gsd_tol {gsd_tol:g} (±{gsd_tol * 100:g} %) apart"
-                )
-        gsd_source = " + ".join(_named(k, srcs[k]) for k in gsd_from.split("+"))
+    gsd, gsd_from, gsd_source = _resolve_gsd(_gsd_ways(vals, srcs, width_px), gsd_tol, prefix, srcs)
 
     heading = vals.get("heading_deg")
     return Priors(
@@ -379,6 +346,48 @@ def build_priors(
         gsd_from=gsd_from,
         sources=tuple((k, srcs[k]) for k in PRIOR_COLUMNS if k in srcs),
     )
+
+
+def _gsd_ways(vals: dict, srcs: dict, width_px: int | None) -> list[tuple]:
+    """Every way the ground resolution can be had, best first (the given value, then derivations, the user's
+    before EXIF's): (rank, order, gsd, how, description)."""
+    ways = []
+    if "gsd_m" in vals:
+        g = vals["gsd_m"]
+        ways.append((-1, 0, g, "gsd_m", f"{_named('gsd_m', srcs['gsd_m'])} = {g:g} m/px"))
+    alt = vals.get("alt_agl_m")
+    if alt is not None and width_px:
+        a_name = f"{_named('alt_agl_m', srcs['alt_agl_m'])} = {alt:g} m"
+        if "hfov_deg" in vals:
+            g = gsd_from_hfov(alt, vals["hfov_deg"], width_px)
+            r = max(_rank(srcs["alt_agl_m"]), _rank(srcs["hfov_deg"]))
+            desc = f"{a_name} with {_named('hfov_deg', srcs['hfov_deg'])} = {vals['hfov_deg']:g}°"
+            ways.append((r, 1, g, "alt_agl_m+hfov_deg", f"{desc} (giving {g:.4g} m/px at {width_px} px wide)"))
+        if "focal_mm" in vals and "sensor_w_mm" in vals:
+            g = gsd_from_focal(alt, vals["focal_mm"], vals["sensor_w_mm"], width_px)
+            r = max(_rank(srcs[k]) for k in ("alt_agl_m", "focal_mm", "sensor_w_mm"))
+            desc = (
+                f"{a_name} with {_named('focal_mm', srcs['focal_mm'])} = {vals['focal_mm']:g} mm and "
+                f"{_named('sensor_w_mm', srcs['sensor_w_mm'])} = {vals['sensor_w_mm']:g} mm"
+            )
+            how = "alt_agl_m+focal_mm+sensor_w_mm"
+            ways.append((r, 2, g, how, f"{desc} (giving {g:.4g} m/px at {width_px} px wide)"))
+    ways.sort(key=lambda w: (w[0], w[1]))
+    return ways
+
+
+def _resolve_gsd(ways: list[tuple], gsd_tol: float, prefix: str, srcs: dict):
+    """(gsd, how, source) from the best way; every other way must agree within ``gsd_tol``."""
+    if not ways:
+        return None, None, None
+    _, _, gsd, gsd_from, first = ways[0]
+    lo, hi = gsd * (1.0 - gsd_tol), gsd * (1.0 + gsd_tol)
+    for _, _, g, _, other in ways[1:]:
+        if not lo * (1 - 1e-9) <= g <= hi * (1 + 1e-9):
+            raise AerolocError(
+                f"{prefix}{first} contradicts {other}: more than gsd_tol {gsd_tol:g} (±{gsd_tol * 100:g} %) apart"
+            )
+    return gsd, gsd_from, " + ".join(_named(k, srcs[k]) for k in gsd_from.split("+"))
 
 
 def truth_priors(

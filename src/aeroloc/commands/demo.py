@@ -84,9 +84,7 @@ def _database(map_path: Path, db_dir: Path, zoom, overlap, tile_m, rerank: str, 
     db = Database(db_dir)
     g = build_global(db, DEFAULT_METHOD, device=device)
     build_local(db, rerank, device)
-    print(
-        f"database: {DEFAULT_METHOD} {g.dim}-d descriptors + {rerank} features in {time.perf_counter() - t0:.1f} s"
-    )
+    print(f"database: {DEFAULT_METHOD} {g.dim}-d descriptors + {rerank} features in {time.perf_counter() - t0:.1f} s")
     return db
 
 

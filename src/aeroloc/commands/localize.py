@@ -51,6 +51,9 @@ def add_arguments(p):
         "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
         "(~2 s); local features only when that finds no distinct match",
     )
+    from aeroloc.commands.priors_args import add_prior_arguments
+
+    add_prior_arguments(p)
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--save-matches", metavar="DIR", help="write match visualisations here")
     p.add_argument("--device", default="auto")
@@ -75,8 +78,10 @@ def options_from_args(args):
 
 
 def run(args) -> int:
+    from aeroloc.commands.priors_args import priors_from_args
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
+    from aeroloc.core.priors import apply_overrides, describe_priors
     from aeroloc.core.queries import load_queries
     from aeroloc.localization.run import localize_queries
     from aeroloc.retrieval.database import Database
@@ -87,8 +92,10 @@ def run(args) -> int:
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
     options = options_from_args(args)  # bad or contradicting options fail before the database and queries are read
     trust_from_args(args)
+    overrides = priors_from_args(args)
     db = Database(args.db)
-    queries = load_queries(args.queries)
+    queries = apply_overrides(load_queries(args.queries), overrides)
+    print(describe_priors(queries))
     results = localize_queries(db, queries, args.out, options, pick_device(args.device), save_matches=args.save_matches)
     n_loc = sum(r.localized for r in results)
     print(f"{n_loc}/{len(results)} queries localized -> {args.out}")

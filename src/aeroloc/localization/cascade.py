@@ -181,12 +181,14 @@ class Reranker:
                     return n
         return n
 
-    def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1) -> Reranked:
+    def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1, rotations=None) -> Reranked:
+        """Re-rank ``tile_ids`` for ``image``; ``rotations`` (multiples of 90° CCW) overrides the conf's, e.g. the
+        one a heading prior points at."""
         t0 = time.perf_counter()
         tfs = self.tile_features(tile_ids)
         t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
-        rots = [k % 4 for k in self.conf["rotations"]]
+        rots = [k % 4 for k in (self.conf["rotations"] if rotations is None else rotations)]
         n_screened = n_verified = 0
         query = {}  # rot_k -> features, extracted on first use: an upright photo that matches costs one extraction
 

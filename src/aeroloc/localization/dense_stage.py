@@ -37,10 +37,14 @@ class DenseResult:
     row: float
     lat: float
     lon: float
+    query_gsd: float = float("nan")  # metres per query pixel the search assumed (match.scale refines it)
+    map_gsd: float = float("nan")
 
-    def footprint(self, query_size: tuple[int, int], query_gsd: float, map_gsd: float) -> np.ndarray:
+    def footprint(self, query_size: tuple[int, int], query_gsd: float | None = None, map_gsd: float | None = None):
         """The query's four corners (top-left, top-right, bottom-right, bottom-left) in map pixels."""
         w, h = query_size
+        query_gsd = self.query_gsd if query_gsd is None else query_gsd
+        map_gsd = self.map_gsd if map_gsd is None else map_gsd
         k = query_gsd * self.match.scale / map_gsd  # query px -> map px
         t = np.radians(self.match.angle)  # query offsets -> map offsets: OpenCV's rotation by the matched angle
         rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
@@ -54,35 +58,53 @@ class DenseResult:
         )
 
 
+def scale_ladder(tol: float | None, step: float = 0.05) -> tuple[float, ...] | None:
+    """Scales refined around the peak for a ground resolution known within ``tol`` (relative): geometric steps of
+    about ``step`` covering [1 - tol, 1 + tol]; None (the stage's default ±10 %) when ``tol`` is unknown."""
+    if tol is None:
+        return None
+    lo, hi = 1.0 - tol, 1.0 + tol
+    n = max(2, int(np.ceil(np.log(hi / lo) / np.log(1.0 + step))) + 1)
+    return tuple(float(s) for s in np.geomspace(lo, hi, n))
+
+
 class DenseMapLocator:
-    def __init__(self, map_, query_gsd: float, conf: dict | None = None, max_region_px: int = 4_000_000):
+    """The dense stage over one map: a query of known ground resolution is placed by structural correlation.
+
+    The map is described at the working resolution of each query (the coarser of query and map); regions are
+    kept per working resolution, so queries finer than the map (drone photos) share one description."""
+
+    def __init__(self, map_, conf: dict | None = None, max_region_px: int = 4_000_000):
         self.map = map_
         self.conf = conf
-        self.query_gsd = check_query_gsd(query_gsd)
-        self.map_gsd = map_gsd = map_.resolution_m
-        work = max(self.query_gsd, map_gsd)
-        self.map_factor = map_gsd / work  # map px -> working px (<= 1)
-        self.query_factor = self.query_gsd / work
+        self.map_gsd = map_.resolution_m
         self.max_region_px = max_region_px
-        self._whole: DenseRegion | None = None
+        self._whole: dict[float, DenseRegion] = {}  # map factor -> the whole map, described
 
-    def _fits(self, w: int, h: int) -> bool:
-        return w * h * self.map_factor**2 <= self.max_region_px
+    def _factors(self, query_gsd: float) -> tuple[float, float]:
+        """(map px -> working px, query px -> working px): both <= 1."""
+        work = max(query_gsd, self.map_gsd)
+        return self.map_gsd / work, query_gsd / work
 
-    def _region(self, col: int, row: int, w: int, h: int) -> DenseRegion:
+    def _fits(self, w: int, h: int, map_factor: float) -> bool:
+        return w * h * map_factor**2 <= self.max_region_px
+
+    def _region(self, col: int, row: int, w: int, h: int, map_factor: float) -> DenseRegion:
         rgb, valid = self.map.read(col, row, w, h)
-        return DenseRegion(
-            resize(rgb, self.map_factor), resize(valid.astype(np.uint8), self.map_factor, True) > 0, self.conf
-        )
+        return DenseRegion(resize(rgb, map_factor), resize(valid.astype(np.uint8), map_factor, True) > 0, self.conf)
 
-    def region(self, tiles: list[Tile]) -> tuple[DenseRegion, int, int] | None:
-        """The region to search and its top-left map pixel: the whole map (described once) when it fits, else the
-        bounding box of the longest prefix of ``tiles`` (best first) that fits; None if not even one does."""
+    def region(self, tiles: list[Tile], map_factor: float) -> tuple[DenseRegion, int, int] | None:
+        """The region to search and its top-left map pixel: the whole map (described once per working
+        resolution) when it fits, else the bounding box of the longest prefix of ``tiles`` (best first) that fits;
+        None if not even one does."""
         m = self.map
-        if self._fits(m.width, m.height):
-            if self._whole is None:
-                self._whole = self._region(0, 0, m.width, m.height)
-            return self._whole, 0, 0
+        key = round(map_factor, 6)
+        if self._fits(m.width, m.height, map_factor):
+            if key not in self._whole:
+                if len(self._whole) >= 2:  # bounded: queries coarser than the map each have their own factor
+                    self._whole.pop(next(iter(self._whole)))
+                self._whole[key] = self._region(0, 0, m.width, m.height, map_factor)
+            return self._whole[key], 0, 0
         box = None
         for t in tiles:
             c0, r0 = max(0, t.col), max(0, t.row)
@@ -92,23 +114,33 @@ class DenseMapLocator:
                 if box is None
                 else (min(box[0], c0), min(box[1], r0), max(box[2], c1), max(box[3], r1))
             )
-            if not self._fits(nb[2] - nb[0], nb[3] - nb[1]):
+            if not self._fits(nb[2] - nb[0], nb[3] - nb[1], map_factor):
                 break
             box = nb
         if box is None:
             return None
-        return self._region(box[0], box[1], box[2] - box[0], box[3] - box[1]), box[0], box[1]
+        return self._region(box[0], box[1], box[2] - box[0], box[3] - box[1], map_factor), box[0], box[1]
 
-    def locate(self, image: np.ndarray, tiles: list[Tile]) -> DenseResult | None:
-        """The trusted dense position of ``image`` (RGB at ``query_gsd``), or None (no distinct structural match:
-        the caller falls back to local features)."""
-        found = self.region(tiles)
+    def locate(
+        self,
+        image: np.ndarray,
+        tiles: list[Tile],
+        query_gsd: float,
+        angles: tuple[float, ...] | None = None,
+        scales: tuple[float, ...] | None = None,
+    ) -> DenseResult | None:
+        """The trusted dense position of ``image`` (RGB at ``query_gsd`` metres per pixel), searched at
+        ``angles`` (the stage's conf when None) and refined over ``scales``; None when there is no distinct
+        structural match (the caller falls back to local features)."""
+        query_gsd = check_query_gsd(query_gsd)
+        map_factor, query_factor = self._factors(query_gsd)
+        found = self.region(tiles, map_factor)
         if found is None:
             return None
         region, col0, row0 = found
-        match = region.locate(resize(image, self.query_factor))
+        match = region.locate(resize(image, query_factor), angles, scales)
         if match is None or not match.trusted(region.conf):
             return None
-        col, row = col0 + match.x / self.map_factor, row0 + match.y / self.map_factor
+        col, row = col0 + match.x / map_factor, row0 + match.y / map_factor
         lat, lon = self.map.pixel_to_latlon(col, row)
-        return DenseResult(match, float(col), float(row), float(lat), float(lon))
+        return DenseResult(match, float(col), float(row), float(lat), float(lon), query_gsd, self.map_gsd)

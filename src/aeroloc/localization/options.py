@@ -67,16 +67,16 @@ class LocalizeOptions:
         """The re-ranker's full effective settings (None for retrieval only)."""
         return rerank_conf(self.rerank, self.cascade_overrides()) if self.rerank else None
 
-    def dense_conf(self) -> dict | None:
-        """The dense stage's settings in effect (headings around north when ``north_up``), None when off."""
-        if self.query_gsd is None:
-            return None
+    def dense_conf(self) -> dict:
+        """The dense stage's settings in effect: headings around north when ``north_up``, else the full circle
+        (a query's heading prior narrows them per query)."""
         from aeroloc.matching.dense import heading_angles
 
         return heading_angles(self.dense_overrides, self.north_up)
 
-    def signature(self, db, query_names: list[str], query_scale: float) -> str:
-        """Everything a results file depends on, as a string: a run resumes or reuses a file only when equal."""
+    def signature(self, db, query_names: list[str], query_scale: float, priors: list[str] | None = None) -> str:
+        """Everything a results file depends on, as a string: a run resumes or reuses a file only when equal.
+        ``priors``: each query's priors described, when any query has some."""
         kw = dict(
             db=str(db.folder.resolve()),
             top_n=self.top_n,
@@ -90,6 +90,7 @@ class LocalizeOptions:
             # rotations only when searched, so the signature of an upright run stays as it was
             **({"rotations": self.rotations} if self.rotations != 1 else {}),
             **({"query_gsd": self.query_gsd, "dense": self.dense_conf()} if self.query_gsd is not None else {}),
+            **({"priors": priors, "dense": self.dense_conf()} if priors else {}),
         )
         return json.dumps(kw, sort_keys=True, default=str)
 

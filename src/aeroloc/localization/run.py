@@ -31,7 +31,8 @@ def localize_queries(
     from tqdm import tqdm
 
     options = options or LocalizeOptions()
-    sink = ResumableCSV(out_csv, COLUMNS, options.signature(db, [q.name for q in queries], QUERY_SCALE))
+    priors = [q.priors.describe() for q in queries] if any(_known(q) for q in queries) else None
+    sink = ResumableCSV(out_csv, COLUMNS, options.signature(db, [q.name for q in queries], QUERY_SCALE, priors))
     finished = sink.finished()
     if finished is not None:
         return [Localization.from_row(r) for r in finished]
@@ -57,9 +58,14 @@ def _localize_one(localizer: Localizer, q, save_matches) -> Localization:
         image = read_image(q.path)
     except AerolocError as exc:
         return Localization(q.name, status=f"not localized: {exc}")
-    res = localizer(q.name, image)
+    res = localizer(q.name, image, priors=getattr(q, "priors", None))
     if save_matches:
         from aeroloc.localization.visualize import save_result_image
 
         save_result_image(save_matches, image, res, localizer.db, localizer.dense)
     return res
+
+
+def _known(q) -> bool:
+    p = getattr(q, "priors", None)
+    return p is not None and p.known

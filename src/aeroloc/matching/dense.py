@@ -176,22 +176,23 @@ class DenseRegion:
         self.features = orientation_features(rgb, self.conf)
         self.correlator = Correlator(self.features)
 
-    def locate(self, query: np.ndarray) -> DenseMatch | None:
-        """Where ``query`` (RGB at the region's ground resolution) lies: every heading of ``conf["angles"]`` at
-        every position (score and distinctness), then the peak refined locally, first over ±half an angle step,
-        then over the scales of ``conf["scales"]`` (a query resolution known to a few per cent: off by 10 %, the
-        global peak still lands on the right place but its centre 25-60 m off). None when the query does not
-        fit."""
+    def locate(self, query: np.ndarray, angles=None, scales=None) -> DenseMatch | None:
+        """Where ``query`` (RGB at the region's ground resolution) lies: every heading of ``angles`` (default
+        ``conf["angles"]``) at every position (score and distinctness), then the peak refined locally, first over
+        ±half an angle step, then over ``scales`` (default ``conf["scales"]``, for a query resolution known to a
+        few per cent: off by 10 %, the global peak still lands on the right place but its centre 25-60 m off).
+        None when the query does not fit."""
         conf = self.conf
-        best = _search(self.correlator, query, conf["angles"], conf, self.invalid)
+        angles = conf["angles"] if angles is None else angles
+        best = _search(self.correlator, query, angles, conf, self.invalid)
         if best is None:
             return None
-        step = _angle_step(conf["angles"])
+        step = _angle_step(angles)
         found = best
         for a in (best.angle - step / 2, best.angle + step / 2) if step else ():
             found = self._refine(query, found, best, a, 1.0)
         turned = found.angle
-        for sc in conf["scales"]:
+        for sc in conf["scales"] if scales is None else scales:
             if sc != 1.0:
                 found = self._refine(query, found, best, turned, sc)
         return found

@@ -709,3 +709,58 @@ def test_a_query_resolution_makes_dense_configurations_for_rerankers_only(tmp_pa
     assert dense["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
     assert "dense @ 5 m/px" in dense["xfeat-lighterglue"].label()
     assert dense[None].query_gsd is None and dense[None].key() == plain[None].key()
+
+
+def test_prior_modes_are_their_own_configurations_and_bad_ones_are_named(tmp_path):
+    root = make_project(tmp_path)
+    q = {"name": "q", "path": "data/queries.csv", "map": "m"}
+    doc = base_doc(
+        queries=[q, {**q, "name": "q rough", "priors": "rough"}, {**q, "name": "q exact", "priors": "exact"}]
+    )
+    configs = [c for c in expand(load_experiment(write_yaml(root, doc))) if c.reranker]
+    by_mode = {c.priors: c for c in configs if (c.zoom, c.overlap, c.top_n) == (1, 0, 5)}
+    assert set(by_mode) == {"auto", "rough", "exact"}
+    assert len({c.key() for c in by_mode.values()}) == 3 and "priors rough" in by_mode["rough"].label()
+    bad = base_doc(queries=[{**q, "priors": "truth"}])
+    with pytest.raises(AerolocError, match=r"queries\[0\]\.priors.*none, rough, exact or auto"):
+        load_experiment(write_yaml(root, bad, "bad.yaml"))
+
+
+def test_scaled_recall_counts_in_map_pixels_and_metres():
+    from aeroloc.bench.metrics import scaled_recall
+
+    per_query = [{"error_m": e} for e in (1.0, 6.0, 30.0, math.inf)]
+    fine = scaled_recall(per_query, 0.5)  # t = 5 m, wrong beyond 25 m
+    assert (fine["t_m"], fine["wrong_m"]) == (5.0, 25.0)
+    assert fine["georef_recall@t"] == 0.25 and fine["wrong_n"] == 1 and fine["wrong"] == 0.25
+    coarse = scaled_recall(per_query, 5.0)  # t = 10 m (2 px), wrong beyond 50 m (10 px)
+    assert coarse["georef_recall@t"] == 0.5 and coarse["wrong_n"] == 0  # not localized is a miss, never wrong
+
+
+def test_the_atlas_table_lists_every_set_and_prior_mode():
+    from aeroloc.bench.tables import atlas_table
+
+    rows = [
+        {
+            "queries": "a",
+            "priors": "exact",
+            "georef_recall@t": 0.9,
+            "t_m": 5.0,
+            "not_localized": 0.1,
+            "wrong_n": 0,
+            "median_ms_per_query": 250.0,
+        },
+        {
+            "queries": "a",
+            "priors": "none",
+            "georef_recall@t": 0.5,
+            "t_m": 5.0,
+            "not_localized": 0.5,
+            "wrong_n": 1,
+            "median_ms_per_query": 1500.0,
+        },
+        {"queries": "b", "vpr_recall@1": 0.3},  # no scale-aware metrics: not an atlas row
+    ]
+    md = atlas_table(rows).markdown()
+    assert "| a | exact | 90.0 | 5.0 | 10.0 | 0 | 0.25 |" in md and "| a | none | 50.0 | 5.0 | 50.0 | 1 | 1.50 |" in md
+    assert "| b |" not in md

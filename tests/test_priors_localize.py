@@ -36,7 +36,9 @@ def test_the_scale_ladder_covers_the_tolerance_in_small_steps():
 
 @pytest.fixture(scope="module")
 def szada(data_dir):
-    return DenseMapLocator(open_map(data_dir / "multi-region" / "szada-hu" / "map.tif"), heading_angles(None, False))
+    return DenseMapLocator(
+        open_map(data_dir / "multi-region" / "szada-hu" / "map.tif"), conf=heading_angles(None, False)
+    )
 
 
 @pytest.mark.slow

@@ -28,6 +28,8 @@ pipeline), so slow re-rankers fit a time budget while every part of the set (dat
 ``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
 ``query_gsd: 5`` gives the images' ground resolution in metres per pixel (``aeroloc localize --query-gsd 5``): the
 dense structural stage is tried before the re-ranker. Both apply to configurations with a re-ranker only.
+``priors: none | rough | exact`` (default ``auto``: what the file says, see aeroloc.core.priors) sets what the
+queries' per-query priors are; ``rough`` adds sensor-like noise with ``seed`` (default 0).
 
 Retrieval-only configurations (re-ranker ``none``) do not depend on N beyond the longest list (Recall@N is
 computed for every N up to it), so they are swept once with the largest ``top_n``.
@@ -88,6 +90,8 @@ class QuerySpec:
     query_gsd: float | None = (
         None  # metres per query pixel: the dense stage runs first (aeroloc.localization.dense_stage)
     )
+    priors: str = "auto"  # aeroloc.core.queries.load_queries(priors=...): none, rough, exact or auto
+    seed: int = 0  # of the "rough" priors' noise
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,8 @@ class Config:
     max_queries: int | None = None  # the pipeline keeps sample_queries(queries, max_queries)
     north_up: bool = False  # localize_queries(north_up=...)
     query_gsd: float | None = None  # localize_queries(query_gsd=...)
+    priors: str = "auto"  # load_queries(priors=...)
+    seed: int = 0
 
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
@@ -158,6 +164,8 @@ class Config:
             parts.append({"max_queries": int(self.max_queries)})
         if self.north_up:  # likewise only when set
             parts.append({"north_up": True})
+        if self.priors != "auto":  # likewise
+            parts.append({"priors": self.priors, "seed": int(self.seed)})
         if self.query_gsd is not None:
             from aeroloc.matching.dense import heading_angles
 
@@ -184,6 +192,8 @@ class Config:
             parts.append("north-up")
         if self.query_gsd is not None:
             parts.append(f"dense @ {self.query_gsd:g} m/px")
+        if self.priors != "auto":
+            parts.append(f"priors {self.priors}")
         return " · ".join(parts)
 
     def as_dict(self) -> dict:
@@ -295,7 +305,12 @@ class _Validator:
         out = []
         for i, q in enumerate(self.entries("queries")):
             where = f"queries[{i}]"
-            self.only_keys(where, q, {"name", "path", "map", "limit", "north_up", "query_gsd"})
+            self.only_keys(where, q, {"name", "path", "map", "limit", "north_up", "query_gsd", "priors", "seed"})
+            priors, seed = q.get("priors", "auto"), q.get("seed", 0)
+            if priors not in ("auto", "none", "rough", "exact"):
+                self.fail(f"{where}.priors", f"expected none, rough, exact or auto, got {priors!r}")
+            if isinstance(seed, bool) or not isinstance(seed, int):
+                self.fail(f"{where}.seed", f"expected an integer, got {seed!r}")
             north_up = q.get("north_up", False)
             if not isinstance(north_up, bool):
                 self.fail(f"{where}.north_up", f"expected true or false, got {north_up!r}")
@@ -318,7 +333,8 @@ class _Validator:
                 map_name = next(iter(map_names))
             if map_name not in map_names:
                 self.fail(f"{where}.map", f"{map_name!r} is not one of the maps ({', '.join(sorted(map_names))})")
-            out.append(QuerySpec(name, self.resolve(f"{where}.path", q.get("path")), map_name, limit, north_up, gsd))
+            path = self.resolve(f"{where}.path", q.get("path"))
+            out.append(QuerySpec(name, path, map_name, limit, north_up, gsd, priors, seed))
         self.unique("queries", [q.name for q in out])
         return out
 
@@ -481,6 +497,8 @@ def expand(exp: Experiment) -> list[Config]:
                     max_queries=q.limit,
                     north_up=q.north_up and reranker is not None,  # retrieval ignores both
                     query_gsd=q.query_gsd if reranker is not None else None,
+                    priors=q.priors,
+                    seed=q.seed,
                 )
                 if c.key() not in keys:  # e.g. one queries file listed under two names: measure it once
                     keys.add(c.key())

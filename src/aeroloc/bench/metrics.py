@@ -92,6 +92,23 @@ def evaluate(
     return out
 
 
+def scaled_recall(per_query: list[dict], map_gsd: float) -> dict:
+    """Recall and wrong fixes measured in map pixels as well as metres, so one table compares maps of 0.5 and
+    5 m/px: ``georef_recall@t`` within t = max(5 m, 2 map px); ``wrong`` = the share of queries localized farther
+    than max(25 m, 10 map px) (a confident wrong answer, worse than none); ``t_m``, ``wrong_m`` the distances."""
+    t_m, wrong_m = max(5.0, 2.0 * map_gsd), max(25.0, 10.0 * map_gsd)
+    errs = np.array([q["error_m"] for q in per_query], np.float64)
+    n = max(1, len(errs))
+    wrong = np.isfinite(errs) & (errs > wrong_m)
+    return {
+        "georef_recall@t": float(np.sum(errs <= t_m) / n),
+        "wrong": float(np.sum(wrong) / n),
+        "wrong_n": int(np.sum(wrong)),
+        "t_m": t_m,
+        "wrong_m": wrong_m,
+    }
+
+
 def _fmt(d: float) -> str:
     return f"{d:g}"
 

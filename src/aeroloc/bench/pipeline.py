@@ -8,6 +8,8 @@ import resource
 import time
 from pathlib import Path
 
+import numpy as np
+
 from aeroloc.localization.results import STAGES
 
 
@@ -55,14 +57,16 @@ def run_config(cfg, cache_dir, progress: bool = False) -> dict:
     device = pick_device(getattr(cfg, "device", "auto"))
     folder = db_folder(cache_dir, cfg.map_path, cfg.zoom, cfg.overlap, cfg.tile_m)
     db, built = _build(cfg, folder, device, progress)
-    queries = sample_queries(load_queries(cfg.queries_path), getattr(cfg, "max_queries", None))
+    priors = getattr(cfg, "priors", "auto")
+    queries = load_queries(cfg.queries_path, priors=priors, seed=getattr(cfg, "seed", 0))
+    queries = sample_queries(queries, getattr(cfg, "max_queries", None))
     options = localize_options(cfg)
     out_csv = _results_csv(cfg, folder, queries, options)
     matches_dir = out_csv.with_name(f"{out_csv.stem}-matches") if cfg.reranker else None
     stamp = out_csv.stat().st_mtime_ns if out_csv.is_file() else None
     results = localize_queries(db, queries, out_csv, options, device, save_matches=matches_dir, progress=progress)
     peak = _localize_peak_rss(out_csv, reused=stamp == out_csv.stat().st_mtime_ns)
-    metrics = score(results, queries, db.tiles, tuple(cfg.thresholds_m))
+    metrics = score(results, queries, db.tiles, tuple(cfg.thresholds_m), db.info["map"].get("resolution_m"))
     per_query = {p["name"]: p for p in metrics.pop("per_query")}
     return {
         "metrics": metrics,
@@ -127,17 +131,21 @@ def _results_csv(cfg, folder: Path, queries, options) -> Path:
         str(Path(cfg.queries_path).resolve()),
         *([{"north_up": True}] if options.north_up else []),
         *([{"query_gsd": float(options.query_gsd)}] if options.query_gsd is not None else []),
+        *([{"priors": cfg.priors, "seed": cfg.seed}] if getattr(cfg, "priors", "auto") != "auto" else []),
     )
     return folder / "results" / f"{cfg.method}-{cfg.reranker or 'none'}-n{cfg.top_n}-k{cfg.top_k}-{key}.csv"
 
 
-def score(results, queries, tiles, thresholds) -> dict:
+def score(results, queries, tiles, thresholds, map_gsd: float | None = None) -> dict:
     """The metrics of ``results``, with the retrieval stage's own VPR recall (before re-ranking, from the
-    retrieved lists) as ``retrieval_vpr_recall@N``."""
-    from aeroloc.bench.metrics import evaluate
+    retrieved lists) as ``retrieval_vpr_recall@N``, and, given the map's resolution, the scale-aware pair of the
+    any-terrain benchmark (aeroloc.bench.metrics.scaled_recall)."""
+    from aeroloc.bench.metrics import evaluate, scaled_recall
     from aeroloc.localization.results import Localization
 
     metrics = evaluate(results, queries, tiles, thresholds)
+    if map_gsd:
+        metrics.update(scaled_recall(metrics["per_query"], map_gsd))
     before = evaluate([Localization(r.name, top_tiles=r.retrieved) for r in results], queries, tiles, thresholds)
     metrics.update({f"retrieval_{k}": v for k, v in before.items() if k.startswith("vpr_recall@")})
     return metrics
@@ -172,5 +180,6 @@ def _timing(results) -> dict:
     n = max(1, len(results))
     timing = {f"{s}_ms": sum(r.times_ms.get(s, 0.0) for r in results) / n for s in STAGES}
     total_ms = sum(r.total_ms for r in results)
-    timing.update(total_ms_per_query=total_ms / n, localize_total_s=total_ms / 1000)
+    median = float(np.median([r.total_ms for r in results])) if results else 0.0
+    timing.update(total_ms_per_query=total_ms / n, median_ms_per_query=median, localize_total_s=total_ms / 1000)
     return timing

@@ -290,4 +290,6 @@ def _flatten(r: sqlite3.Row) -> dict:
         for k, v in json.loads(r[blob] or "{}").items():
             if not isinstance(v, (dict, list)):
                 out.setdefault(k, v)  # extra: the pipeline's db folder, results CSV …
+    config = json.loads(r["extra_json"] or "{}").get("config") or {}
+    out.setdefault("priors", config.get("priors", "auto"))  # the query set's prior mode (atlas table)
     return out

@@ -347,6 +347,37 @@ def georef_table(rows: list[dict], dataset: str, thresholds=None) -> Table | Non
     )
 
 
+def atlas_table(rows: list[dict]) -> Table | None:
+    """Every query set x prior mode in one table: Georef@t (t = max(5 m, 2 map px)), not localized, wrong
+    (> max(25 m, 10 map px)), median s/query — the any-terrain benchmark (experiments/atlas.yaml)."""
+    rows = [r for r in rows if r.get("georef_recall@t") is not None]
+    if not rows:
+        return None
+    out_rows = []
+    for r in sorted(rows, key=lambda r: (r.get("queries") or "", r.get("priors") or "")):
+        out_rows.append(
+            [
+                Cell(str(r.get("queries"))),
+                Cell(str(r.get("priors") or "auto")),
+                Cell(pct(r.get("georef_recall@t"))),
+                Cell(_num(r.get("t_m")), 1),
+                Cell(pct(r.get("not_localized"))),
+                Cell(_num(r.get("wrong_n")), 0),
+                Cell(_num((r.get("median_ms_per_query") or 0) / 1000), 2),
+            ]
+        )
+    return Table(
+        "atlas",
+        "Any terrain: every query set and prior mode",
+        ["query set", "priors"],
+        ["Georef@t %", "t m", "not loc. %", "wrong", "s/query (median)"],
+        out_rows,
+        note="t = max(5 m, 2 map px); wrong = localized farther than max(25 m, 10 map px); priors: none = no "
+        "heading or ground resolution, rough = truth with sensor-like noise (ground resolution x U(0.8, 1.25), "
+        "heading ± 15°), exact = truth.",
+    )
+
+
 def time_table(rows: list[dict], dataset: str) -> Table | None:
     if not rows:
         return None
@@ -427,6 +458,10 @@ def build_tables(rows: list[dict]) -> list[Table]:
             if t is not None:
                 t.dataset = dataset
                 out.append(t)
+    atlas = atlas_table(rows)
+    if atlas is not None:
+        atlas.dataset = "all"
+        out.append(atlas)
     return out
 
 

@@ -74,12 +74,22 @@ class DenseMapLocator:
     The map is described at the working resolution of each query (the coarser of query and map); regions are
     kept per working resolution, so queries finer than the map (drone photos) share one description."""
 
-    def __init__(self, map_, conf: dict | None = None, max_region_px: int = 4_000_000):
+    def __init__(self, map_, query_gsd: float | None = None, conf: dict | None = None, max_region_px: int = 4_000_000):
         self.map = map_
         self.conf = conf
         self.map_gsd = map_.resolution_m
+        self.query_gsd = check_query_gsd(query_gsd)  # the default of locate(); a query's own prior overrides it
         self.max_region_px = max_region_px
         self._whole: dict[float, DenseRegion] = {}  # map factor -> the whole map, described
+
+    @property
+    def map_factor(self) -> float:
+        """Map px -> working px at the default query resolution."""
+        return self._factors(self.query_gsd)[0]
+
+    @property
+    def query_factor(self) -> float:
+        return self._factors(self.query_gsd)[1]
 
     def _factors(self, query_gsd: float) -> tuple[float, float]:
         """(map px -> working px, query px -> working px): both <= 1."""
@@ -93,11 +103,12 @@ class DenseMapLocator:
         rgb, valid = self.map.read(col, row, w, h)
         return DenseRegion(resize(rgb, map_factor), resize(valid.astype(np.uint8), map_factor, True) > 0, self.conf)
 
-    def region(self, tiles: list[Tile], map_factor: float) -> tuple[DenseRegion, int, int] | None:
+    def region(self, tiles: list[Tile], map_factor: float | None = None) -> tuple[DenseRegion, int, int] | None:
         """The region to search and its top-left map pixel: the whole map (described once per working
         resolution) when it fits, else the bounding box of the longest prefix of ``tiles`` (best first) that fits;
         None if not even one does."""
         m = self.map
+        map_factor = self.map_factor if map_factor is None else map_factor
         key = round(map_factor, 6)
         if self._fits(m.width, m.height, map_factor):
             if key not in self._whole:
@@ -125,14 +136,16 @@ class DenseMapLocator:
         self,
         image: np.ndarray,
         tiles: list[Tile],
-        query_gsd: float,
+        query_gsd: float | None = None,
         angles: tuple[float, ...] | None = None,
         scales: tuple[float, ...] | None = None,
     ) -> DenseResult | None:
-        """The trusted dense position of ``image`` (RGB at ``query_gsd`` metres per pixel), searched at
-        ``angles`` (the stage's conf when None) and refined over ``scales``; None when there is no distinct
-        structural match (the caller falls back to local features)."""
-        query_gsd = check_query_gsd(query_gsd)
+        """The trusted dense position of ``image`` (RGB at ``query_gsd`` metres per pixel, default the
+        locator's), searched at ``angles`` (the stage's conf when None) and refined over ``scales``; None when
+        there is no distinct structural match (the caller falls back to local features)."""
+        query_gsd = self.query_gsd if query_gsd is None else check_query_gsd(query_gsd)
+        if query_gsd is None:
+            raise AerolocError("the dense stage needs the query's ground resolution")
         map_factor, query_factor = self._factors(query_gsd)
         found = self.region(tiles, map_factor)
         if found is None:

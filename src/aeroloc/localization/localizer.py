@@ -151,7 +151,7 @@ class Localizer:
 
         if self.map is None:
             return None
-        return DenseMapLocator(self.map, self.options.dense_conf())
+        return DenseMapLocator(self.map, conf=self.options.dense_conf())
 
     @cached_property
     def map(self):

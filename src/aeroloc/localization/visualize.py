@@ -25,7 +25,7 @@ def save_dense_image(path: Path, image: np.ndarray, dense, res: Localization) ->
     import cv2
 
     m = dense.map
-    xy = res.dense.footprint((image.shape[1], image.shape[0]), dense.query_gsd, dense.map_gsd)
+    xy = res.dense.footprint((image.shape[1], image.shape[0]))  # at the resolution its search assumed
     (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
     pad = 0.5 * max(x1 - x0, y1 - y0)
     c0, r0 = max(0, int(x0 - pad)), max(0, int(y0 - pad))

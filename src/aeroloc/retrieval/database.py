@@ -137,14 +137,12 @@ def build_global(
     )
     t_index = _build_index(store, gdir / "index.faiss", index_factory)
     _register(db, method, entry)
-    return GlobalBuildReport(
-        method=method,
-        key=key,
-        dir=entry["dir"],
-        n_tiles=len(db.tiles),
-        dim=model.dim,
-        bytes_per_tile=store.bytes_per_item(),
-        index_bytes=(gdir / "index.faiss").stat().st_size,
+    return _report(
+        db,
+        method,
+        key,
+        entry,
+        store,
         cached=False,
         fit_s=t_fit,
         extract_s=t_desc,
@@ -188,15 +186,20 @@ def _cached_build(db: Database, method: str, key: str, gdir: Path, entry: dict) 
         return None
     existing = DescriptorStore.open_complete(gdir)
     _register(db, method, entry)
+    return _report(db, method, key, entry, existing, cached=True)
+
+
+def _report(db: Database, method: str, key: str, entry: dict, store: DescriptorStore, **times) -> GlobalBuildReport:
+    """The report of a build whose descriptors are in ``store`` (``times``: cached and the stage seconds)."""
     return GlobalBuildReport(
         method=method,
         key=key,
         dir=entry["dir"],
         n_tiles=len(db.tiles),
-        dim=existing.dim,
-        bytes_per_tile=existing.bytes_per_item(),
-        index_bytes=(gdir / "index.faiss").stat().st_size,
-        cached=True,
+        dim=store.dim,
+        bytes_per_tile=store.bytes_per_item(),
+        index_bytes=(store.folder / "index.faiss").stat().st_size,
+        **times,
     )
 
 

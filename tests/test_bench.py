@@ -764,3 +764,11 @@ def test_the_atlas_table_lists_every_set_and_prior_mode():
     md = atlas_table(rows).markdown()
     assert "| a | exact | 90.0 | 5.0 | 10.0 | 0 | 0.25 |" in md and "| a | none | 50.0 | 5.0 | 50.0 | 1 | 1.50 |" in md
     assert "| b |" not in md
+
+
+def test_the_georef_table_reads_only_metre_thresholds_beside_the_scaled_recall():
+    from aeroloc.bench.tables import georef_table
+
+    row = {"queries": "a", "method": "m", "reranker": "r", "georef_recall@5m": 0.5, "georef_recall@t": 0.7}
+    md = georef_table([row], "a").markdown()
+    assert "≤5 m" in md and "≤t" not in md

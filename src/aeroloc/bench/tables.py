@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import html
 import math
+import re
 from dataclasses import dataclass, field
 
 RECALL_NS = (1, 5, 10)
@@ -320,7 +321,9 @@ def georef_table(rows: list[dict], dataset: str, thresholds=None) -> Table | Non
     if not rows:
         return None
     if thresholds is None:
-        thresholds = sorted({float(k.split("@")[1][:-1]) for r in rows for k in r if k.startswith("georef_recall@")})
+        thresholds = sorted(
+            {float(k[len("georef_recall@") : -1]) for r in rows for k in r if re.fullmatch(r"georef_recall@[\d.]+m", k)}
+        )
     labels = varying(rows, always=("method", "reranker"))
     cols, out_rows = [], []
     columns = [f"≤{t:g} m" for t in thresholds] + ["median m", "p90 m", "not loc. %"]

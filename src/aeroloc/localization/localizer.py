@@ -55,7 +55,36 @@ class Localizer:
         else:
             return None
         angles = p.heading_search() if p is not None else None
-        return {"query_gsd": gsd, "angles": angles, "scales": scales}
+        # a query's own prior: its answer is checked by local features (the dense stage's acceptance was fitted
+        # on NAIP; on levir-tx it trusted a fix 53 m off at ratio 1.65-1.76); --query-gsd keeps its NAIP rule
+        verify = p is not None and p.gsd_m is not None
+        return {"query_gsd": gsd, "angles": angles, "scales": scales, "verify": verify}
+
+    def _dense_confirmed(self, image: np.ndarray, d, out: Localization) -> bool:
+        """Whether local features agree with the dense answer ``d``: the query, turned by the quarter turn nearest
+        the dense heading, matched against the tiles that contain the dense position, aligns within
+        max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation."""
+        if self.reranker is None:
+            return False
+        from aeroloc.core import geo
+
+        tiles = self._tiles_around(d.col, d.row, [])[:3]
+        rr = self.reranker(image, tiles, 1, rotations=[round(d.match.angle / 90.0) % 4])
+        _add_times(out, rr.times_ms)
+        best = rr.candidates[0]
+        a = align(
+            best.H,
+            best.score,
+            (image.shape[1], image.shape[0]),
+            self.db.by_id[best.tile_id],
+            self.map_size,
+            self.reranker.conf["min_inliers"],
+        )
+        if not a.localized:
+            return False
+        out.inliers = best.score
+        reach = max(25.0, 10.0 * self.dense.map_gsd)
+        return float(geo.geodesic_distance(d.lat, d.lon, a.lat, a.lon)) <= reach
 
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
         r = self.retriever(image, top_n)
@@ -63,21 +92,26 @@ class Localizer:
         dense_ms = 0.0
         search = self.dense_search(image, priors)
         if search is not None and self.dense is not None:
+            verify = search.pop("verify")
             t0 = time.perf_counter()
             d = self.dense.locate(image, [self.db.by_id[t] for t in r.tile_ids], **search)
             dense_ms = (time.perf_counter() - t0) * 1000
-            if d is not None:
+            if d is not None and (not verify or self._dense_confirmed(image, d, out)):
                 out.times_ms["align"] = dense_ms
-                out.lat, out.lon, out.status, out.dense = d.lat, d.lon, d.status(), d
+                status = d.status()
+                if verify:
+                    status = status[:-1] + f", confirmed by {out.inliers} local-feature inliers)"
+                out.lat, out.lon, out.status, out.dense = d.lat, d.lon, status, d
                 out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[: top_k or None]
                 return out
+            out.inliers = 0
         if self.reranker is None:  # retrieval only: best tile centre, no alignment
             out.top_tiles = r.tile_ids[:top_k] if top_k else r.tile_ids
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
             out.status = "retrieval only"
             return out
         rr = self.reranker(image, r.tile_ids, top_k, rotations=prior_rotations(priors))
-        out.times_ms.update(rr.times_ms)
+        _add_times(out, rr.times_ms)
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
         out.best = best
@@ -175,3 +209,9 @@ def prior_rotations(priors) -> list[int] | None:
 
     ks = sorted((k for k in range(4) if off(k) <= 45.0 + tol), key=off)
     return ks if len(ks) < 4 else None
+
+
+def _add_times(out: Localization, times_ms: dict) -> None:
+    """Stage times added to the result's (a confirmation and the cascade after it both count)."""
+    for stage, ms in times_ms.items():
+        out.times_ms[stage] = out.times_ms.get(stage, 0.0) + ms

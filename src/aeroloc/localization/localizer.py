@@ -72,14 +72,7 @@ class Localizer:
         rr = self.reranker(image, tiles, 1, rotations=[round(d.match.angle / 90.0) % 4])
         _add_times(out, rr.times_ms)
         best = rr.candidates[0]
-        a = align(
-            best.H,
-            best.score,
-            (image.shape[1], image.shape[0]),
-            self.db.by_id[best.tile_id],
-            self.map_size,
-            self.reranker.conf["min_inliers"],
-        )
+        a = self._align_best(image, best)
         if not a.localized:
             return False
         out.inliers = best.score
@@ -116,15 +109,7 @@ class Localizer:
         best = rr.candidates[0]
         out.best = best
         t0 = time.perf_counter()
-        conf = self.reranker.conf
-        a = align(
-            best.H,
-            best.score,
-            (image.shape[1], image.shape[0]),
-            self.db.by_id[best.tile_id],
-            self.map_size,
-            conf["min_inliers"],
-        )
+        a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
         if doubt:
             a = Alignment(f"not localized: {doubt}")
@@ -133,6 +118,13 @@ class Localizer:
         out.times_ms["align"] = (time.perf_counter() - t0) * 1000 + dense_ms
         out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
         return out
+
+    def _align_best(self, image: np.ndarray, best) -> Alignment:
+        """The query centre through the best candidate's transform into its tile, then to lat/lon."""
+        size = (image.shape[1], image.shape[0])
+        return align(
+            best.H, best.score, size, self.db.by_id[best.tile_id], self.map_size, self.reranker.conf["min_inliers"]
+        )
 
     def _should_realign(self, a: Alignment, best, query_size) -> bool:
         from aeroloc.localization.window import beyond_tile

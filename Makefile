@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	  echo "note: chromium not installed; the report's browser test will be skipped"; }
 	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
 	$(VENV)/bin/pip install -q --upgrade pip
-	$(VENV)/bin/pip install -q -e '.[test]'
+	$(VENV)/bin/pip install -q -e '.[test,ray]'
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -24,7 +24,7 @@ from aeroloc.bench.tables import (
 )
 
 COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f", "#bcbd22"]
-STAGE_COLOURS = ["#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974"]
+STAGE_COLOURS = ["#4c72b0", "#55a868", "#c44e52", "#8172b2", "#da8bc3", "#ccb974"]
 
 
 @dataclass

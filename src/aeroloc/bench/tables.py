@@ -25,6 +25,7 @@ STAGE_NAMES = {
     "search": "search",
     "local_features": "local features",
     "rerank": "re-rank",
+    "sweep": "sweep",
     "align": "align",
 }
 LABEL_FIELDS = (

@@ -82,6 +82,12 @@ class Localizer:
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
         r = self.retriever(image, top_n)
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
+        known = priors is not None and priors.known
+        if known and self.sweep is not None:  # a heading or scale prior: the sweep narrows to it, then the cascade
+            if self._sweep_fix(image, priors, out, r.tile_ids, top_k):
+                return out
+            self._cascade(image, r.tile_ids, top_k, priors, out)
+            return out
         dense_ms = 0.0
         search = self.dense_search(image, priors)
         if search is not None and self.dense is not None:
@@ -103,7 +109,15 @@ class Localizer:
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
             out.status = "retrieval only"
             return out
-        rr = self.reranker(image, r.tile_ids, top_k, rotations=prior_rotations(priors))
+        self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms)
+        if not out.localized and self.sweep is not None and not known and not self.options.north_up:
+            # heading unknown and the quarter turns found nothing: every heading and scale
+            self._sweep_fix(image, None, out, r.tile_ids, top_k)
+        return out
+
+    def _cascade(self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms: float = 0.0):
+        """Re-rank the retrieved tiles at the quarter turns the heading allows, align the best one into ``out``."""
+        rr = self.reranker(image, tile_ids, top_k, rotations=prior_rotations(priors))
         _add_times(out, rr.times_ms)
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
@@ -115,9 +129,26 @@ class Localizer:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
             a = self._realign(image, best, rr.query.get(best.rot_k)) or a
-        out.times_ms["align"] = (time.perf_counter() - t0) * 1000 + dense_ms
+        out.times_ms["align"] = out.times_ms.get("align", 0.0) + (time.perf_counter() - t0) * 1000 + extra_ms
         out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
-        return out
+
+    def _sweep_fix(self, image: np.ndarray, priors, out: Localization, retrieved: list[str], top_k: int) -> bool:
+        """The sweep's candidates confirmed by local features (aeroloc.localization.sweep_stage) into ``out``;
+        False (``out`` untouched but for the time spent) when none is confirmed."""
+        from aeroloc.localization.sweep_stage import accept_fix
+
+        t0 = time.perf_counter()
+        found = accept_fix(self.sweep, self.reranker, image, priors)
+        out.times_ms["sweep"] = out.times_ms.get("sweep", 0.0) + (time.perf_counter() - t0) * 1000
+        if found is None:
+            return False
+        fix, why = found
+        a, h = fix.alignment, fix.hypothesis
+        out.lat, out.lon, out.inliers, out.best, out.dense = a.lat, a.lon, fix.inliers, None, None
+        out.status = f"localized (sweep: heading {h.angle:.0f}°, scale {h.scale:.2f}; {why})"
+        col, row = self.map.latlon_to_pixel(a.lat, a.lon)
+        out.top_tiles = self._tiles_around(float(col), float(row), retrieved)[: top_k or None]
+        return True
 
     def _align_best(self, image: np.ndarray, best) -> Alignment:
         """The query centre through the best candidate's transform into its tile, then to lat/lon."""
@@ -178,6 +209,16 @@ class Localizer:
         if self.map is None:
             return None
         return DenseMapLocator(self.map, conf=self.options.dense_conf())
+
+    @cached_property
+    def sweep(self):
+        """The any-heading, any-scale sweep over the whole map (aeroloc.localization.sweep_stage), or None: off in
+        the options, no re-ranker to confirm with, no map, or a map too large to sweep whole."""
+        from aeroloc.localization.sweep_stage import open_sweep
+
+        if not self.options.sweep or self.reranker is None:
+            return None
+        return open_sweep(self.map, self.options.sweep_overrides)
 
     @cached_property
     def map(self):

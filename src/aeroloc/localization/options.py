@@ -23,7 +23,10 @@ class LocalizeOptions:
     ``rerank_overrides`` of its cascade settings (aeroloc.matching.registry); ``rotations`` > 1 retrieves with the
     query at that many headings; ``north_up`` for queries known to be north-up within about ±45° (no 90° rotation
     search; the dense stage searches ±15°); ``query_gsd`` (metres per query pixel) turns the dense structural
-    stage on; ``dense_overrides`` of its settings (aeroloc.matching.dense.DEFAULTS)."""
+    stage on; ``dense_overrides`` of its settings (aeroloc.matching.dense.DEFAULTS); ``sweep`` searches the whole
+    map at every heading and scale the priors allow (aeroloc.localization.sweep_stage) for queries with priors,
+    and for those the quarter-turn cascade could not place; ``sweep_overrides`` of its settings
+    (aeroloc.matching.sweep.SWEEP_DEFAULTS)."""
 
     top_n: int = 20
     top_k: int = 1
@@ -34,6 +37,8 @@ class LocalizeOptions:
     north_up: bool = False
     query_gsd: float | None = None
     dense_overrides: dict[str, Any] | None = field(default=None, hash=False)
+    sweep: bool = True
+    sweep_overrides: dict[str, Any] | None = field(default=None, hash=False)
 
     def __post_init__(self):
         if not isinstance(self.top_n, int) or self.top_n < 1:
@@ -51,6 +56,7 @@ class LocalizeOptions:
             object.__setattr__(self, "rerank", None)
         if self.rerank is not None:
             rerank_conf(self.rerank, self.rerank_overrides)  # unknown names and options fail here
+        self.sweep_conf()  # unknown sweep settings fail here
         if self.query_gsd is not None and self.rerank is None:
             raise AerolocError(
                 "the dense stage (query ground resolution) needs a re-ranker; it is off with --rerank none"
@@ -74,6 +80,14 @@ class LocalizeOptions:
 
         return heading_angles(self.dense_overrides, self.north_up)
 
+    def sweep_conf(self) -> dict:
+        from aeroloc.matching.sweep import SWEEP_DEFAULTS
+
+        unknown = set(self.sweep_overrides or {}) - set(SWEEP_DEFAULTS)
+        if unknown:
+            raise AerolocError(f"unknown sweep settings {sorted(unknown)}; known: {sorted(SWEEP_DEFAULTS)}")
+        return {**SWEEP_DEFAULTS, **(self.sweep_overrides or {})}
+
     def signature(self, db, query_names: list[str], query_scale: float, priors: list[str] | None = None) -> str:
         """Everything a results file depends on, as a string: a run resumes or reuses a file only when equal.
         ``priors``: each query's priors described, when any query has some."""
@@ -91,6 +105,7 @@ class LocalizeOptions:
             **({"rotations": self.rotations} if self.rotations != 1 else {}),
             **({"query_gsd": self.query_gsd, "dense": self.dense_conf()} if self.query_gsd is not None else {}),
             **({"priors": priors, "dense": self.dense_conf()} if priors else {}),
+            **({"sweep": self.sweep_conf()} if self.sweep and self.rerank else {}),
         )
         return json.dumps(kw, sort_keys=True, default=str)
 

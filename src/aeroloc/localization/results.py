@@ -15,12 +15,14 @@ from pathlib import Path
 
 from aeroloc.core.errors import AerolocError
 
-STAGES = ("descriptor", "search", "local_features", "rerank", "align")
+STAGES = ("descriptor", "search", "local_features", "rerank", "sweep", "align")
 COLUMNS = [
     "name",
     "lat",
     "lon",
     "status",
+    "confidence",
+    "sigma_m",
     "inliers",
     "top_tiles",
     "retrieved_tiles",
@@ -42,6 +44,8 @@ class Localization:
     top_tiles: list[str] = field(default_factory=list)
     retrieved: list[str] = field(default_factory=list)
     times_ms: dict = field(default_factory=dict)
+    confidence: float | None = None  # probability that the fix lies within its stated radius (calibrated)
+    sigma_m: float | None = None  # 1-sigma position uncertainty, metres (None: not localized)
     best = None  # cascade.Candidate, for visualisation (not part of the CSV)
     dense = None  # dense_stage.DenseResult, for visualisation (not part of the CSV)
 
@@ -61,6 +65,8 @@ class Localization:
             "lat": f"{self.lat:.8f}" if loc else "",
             "lon": f"{self.lon:.8f}" if loc else "",
             "status": self.status,
+            "confidence": "" if self.confidence is None else f"{self.confidence:.3f}",
+            "sigma_m": "" if self.sigma_m is None else f"{self.sigma_m:.2f}",
             "inliers": str(self.inliers),
             "top_tiles": ";".join(self.top_tiles),
             "retrieved_tiles": ";".join(self.retrieved),
@@ -79,8 +85,10 @@ class Localization:
         try:
             inliers = int(row.get("inliers") or 0)
             times = {s: float(row[f"{s}_ms"]) for s in STAGES if row.get(f"{s}_ms")}
+            confidence = float(row["confidence"]) if row.get("confidence") else None
+            sigma = float(row["sigma_m"]) if row.get("sigma_m") else None
         except ValueError:
-            raise AerolocError(f"{where}: inliers or *_ms columns are not numbers") from None
+            raise AerolocError(f"{where}: inliers, confidence, sigma_m or *_ms columns are not numbers") from None
         return cls(
             row["name"],
             lat,
@@ -90,6 +98,8 @@ class Localization:
             _ids(row.get("top_tiles")),
             _ids(row.get("retrieved_tiles")),
             times,
+            confidence,
+            sigma,
         )
 
 

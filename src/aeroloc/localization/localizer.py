@@ -31,13 +31,18 @@ class Localizer:
         self.reranker = Reranker(db, options.rerank, device, options.cascade_overrides()) if options.rerank else None
         m = db.info["map"]
         self.map_size = (int(m["width"]), int(m["height"]))
+        self.map_gsd = float(m["resolution_m"]) if m.get("resolution_m") else None
 
     def __call__(self, name: str, image: np.ndarray, top_n: int | None = None, priors=None) -> Localization:
         """Localize one RGB image (HxWx3 uint8) named ``name``; ``top_n`` overrides the options' for this image;
         ``priors`` (aeroloc.core.priors.Priors) what the aircraft knew of this image's ground resolution and
         heading (unknown ones are searched)."""
         from aeroloc.core.device import single_threaded_blas
+        from aeroloc.localization.screening import refusal
 
+        why = refusal(image, self.map_gsd, priors)
+        if why is not None:
+            return Localization(name, status=why)
         with single_threaded_blas():
             return self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
 

@@ -78,9 +78,9 @@ def upright(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
     h, w = image.shape[:2]
     a = math.radians(angle)
     c, s = abs(math.cos(a)), abs(math.sin(a))
-    W, H = int(math.ceil(w * c + h * s)), int(math.ceil(w * s + h * c))
-    R = cv2.getRotationMatrix2D((w / 2.0, h / 2.0), angle, 1.0)
-    R[:, 2] += (W / 2.0 - w / 2.0, H / 2.0 - h / 2.0)
+    W, H = int(math.ceil(w * c + h * s - 1e-6)), int(math.ceil(w * s + h * c - 1e-6))
+    R = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), angle, 1.0)  # OpenCV: pixel-centre origin
+    R[:, 2] += ((W - w) / 2.0, (H - h) / 2.0)
     out = cv2.warpAffine(image, R, (W, H), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
     mask = cv2.warpAffine(np.full((h, w), 255, np.uint8), R, (W, H), flags=cv2.INTER_NEAREST) > 0
     return out, cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0

@@ -1,0 +1,40 @@
+"""Queries the pipeline cannot localize, refused before any matching with the reason in ``status``.
+
+Why: a photo smaller than the matchers' minimum, one with no imagery (all no-data or a uniform frame, as a camera
+returns when covered or over-exposed), or one whose ground resolution is far outside what the map can be matched
+at would otherwise go through every stage and either cost seconds for nothing or, worse, match by chance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aeroloc.core.images import valid_mask
+
+MIN_SIDE_PX = 32  # below this a query holds too few keypoints for any matcher (XFeat's grid is 8 px)
+MIN_CONTENT = 0.05  # share of the image that must be valid (not no-data)
+MIN_STD = 2.0  # grey-level standard deviation under which a frame holds no structure
+SCALE_RANGE = (1 / 16, 16.0)  # query gsd / map gsd the stages can bridge (the sweep searches 0.25-2x)
+
+
+def refusal(image: np.ndarray, map_gsd: float | None = None, priors=None) -> str | None:
+    """Why ``image`` (RGB uint8) is not worth localizing, as a "not localized: ..." status; None when it is."""
+    h, w = image.shape[:2]
+    if min(h, w) < MIN_SIDE_PX:
+        return f"not localized: the query is {w}x{h} px, smaller than the {MIN_SIDE_PX} px the matchers need"
+    valid = valid_mask(image)
+    share = float(valid.mean())
+    if share < MIN_CONTENT:
+        return f"not localized: the query is {100 * (1 - share):.0f} % no-data"
+    grey = image[valid].astype(np.float32).mean(axis=-1) if image.ndim == 3 else image[valid].astype(np.float32)
+    if float(grey.std()) < MIN_STD:
+        return "not localized: the query is uniform (no structure to match)"
+    rng = priors.with_image_width(w).gsd_range() if priors is not None and priors.gsd_m is not None else None
+    if rng and map_gsd:
+        lo, hi = rng[0] / map_gsd, rng[1] / map_gsd
+        if hi < SCALE_RANGE[0] or lo > SCALE_RANGE[1]:
+            return (
+                f"not localized: the query's ground resolution {rng[0]:.3g}-{rng[1]:.3g} m/px is outside what the "
+                f"{map_gsd:.3g} m/px map can be matched at ({SCALE_RANGE[0]:.3g}-{SCALE_RANGE[1]:.3g}x)"
+            )
+    return None

@@ -51,6 +51,21 @@ def add_arguments(p):
         "headings within ±15° of north with --north-up (~0.25 s per query), else at every heading "
         "(~2 s); local features only when that finds no distinct match",
     )
+    p.add_argument(
+        "--no-sweep",
+        action="store_true",
+        help="don't sweep the whole map at every heading and scale (aeroloc.localization.sweep_stage); by default "
+        "queries with a heading or ground-resolution prior are swept first, the others when the quarter-turn "
+        "re-ranking finds nothing",
+    )
+    p.add_argument(
+        "--min-confidence",
+        type=float,
+        default=0.5,
+        metavar="P",
+        help="calibrated probability (within max(5 m, 2 map px)) a fix needs, else 'not localized' "
+        "(default %(default)s; aeroloc.localization.confidence)",
+    )
     from aeroloc.commands.priors_args import add_prior_arguments
 
     add_prior_arguments(p)
@@ -74,6 +89,8 @@ def options_from_args(args):
         rotations=args.rotations,
         north_up=args.north_up,
         query_gsd=args.query_gsd,
+        sweep=not args.no_sweep,
+        min_confidence=args.min_confidence,
     )
 
 

@@ -44,7 +44,24 @@ class Localizer:
         if why is not None:
             return Localization(name, status=why)
         with single_threaded_blas():
-            return self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
+            out = self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
+        return self._assess(out)
+
+    def _assess(self, out: Localization) -> Localization:
+        """The fix's calibrated confidence and sigma (aeroloc.localization.confidence); a fix below the options'
+        confidence floor becomes "not localized"."""
+        from aeroloc.localization.confidence import assess
+
+        if not out.localized or self.map_gsd is None:
+            return out
+        out.confidence, out.sigma_m = assess(out.status, out.inliers, self.map_gsd)
+        if out.confidence < self.options.min_confidence:
+            out.status = (
+                f"not localized: confidence {out.confidence:.2f} < {self.options.min_confidence} ({out.status})"
+            )
+            out.lat = out.lon = float("nan")
+            out.confidence = out.sigma_m = None
+        return out
 
     def dense_search(self, image: np.ndarray, priors=None) -> dict | None:
         """The dense stage's search for this image: its ground resolution (the image's prior, else the options'),

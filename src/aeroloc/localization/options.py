@@ -26,7 +26,8 @@ class LocalizeOptions:
     stage on; ``dense_overrides`` of its settings (aeroloc.matching.dense.DEFAULTS); ``sweep`` searches the whole
     map at every heading and scale the priors allow (aeroloc.localization.sweep_stage) for queries with priors,
     and for those the quarter-turn cascade could not place; ``sweep_overrides`` of its settings
-    (aeroloc.matching.sweep.SWEEP_DEFAULTS)."""
+    (aeroloc.matching.sweep.SWEEP_DEFAULTS); ``min_confidence`` the calibrated confidence a fix needs
+    (aeroloc.localization.confidence)."""
 
     top_n: int = 20
     top_k: int = 1
@@ -38,6 +39,7 @@ class LocalizeOptions:
     query_gsd: float | None = None
     dense_overrides: dict[str, Any] | None = field(default=None, hash=False)
     sweep: bool = True
+    min_confidence: float = 0.5
     sweep_overrides: dict[str, Any] | None = field(default=None, hash=False)
 
     def __post_init__(self):
@@ -57,6 +59,8 @@ class LocalizeOptions:
         if self.rerank is not None:
             rerank_conf(self.rerank, self.rerank_overrides)  # unknown names and options fail here
         self.sweep_conf()  # unknown sweep settings fail here
+        if not 0.0 <= self.min_confidence < 1.0:
+            raise AerolocError(f"min-confidence must be in [0, 1), got {self.min_confidence!r}")
         if self.query_gsd is not None and self.rerank is None:
             raise AerolocError(
                 "the dense stage (query ground resolution) needs a re-ranker; it is off with --rerank none"
@@ -106,6 +110,7 @@ class LocalizeOptions:
             **({"query_gsd": self.query_gsd, "dense": self.dense_conf()} if self.query_gsd is not None else {}),
             **({"priors": priors, "dense": self.dense_conf()} if priors else {}),
             **({"sweep": self.sweep_conf()} if self.sweep and self.rerank else {}),
+            **({"min_confidence": self.min_confidence} if self.min_confidence != 0.5 else {}),
         )
         return json.dumps(kw, sort_keys=True, default=str)
 

@@ -1,0 +1,127 @@
+"""Fit the confidence and uncertainty models of aeroloc.localization.confidence on benchmark results, and print
+the reliability table (confidence bins vs observed share within t), each map's fixes scored by a model fitted
+without that map.
+
+usage: python benchmarks/calibrate.py RUNS/results.sqlite [...]   (e.g. the output of experiments/atlas.yaml)
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import sqlite3
+import sys
+from collections import defaultdict
+
+import numpy as np
+from scipy.optimize import minimize
+
+from aeroloc.localization.confidence import SOURCES, StageModel, source_of
+from aeroloc.maps.sources import open_map
+
+BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0001)
+
+
+def load(paths: list[str]) -> list[dict]:
+    """Localized fixes of the newest run of every configuration: map, set, stage, inliers, error, t."""
+    rows, gsd = [], {}
+    for p in paths:
+        db = sqlite3.connect(p)
+        db.row_factory = sqlite3.Row
+        newest = db.execute(
+            "SELECT config_key, map, map_path, queries, MAX(run_id) AS run_id FROM results GROUP BY config_key"
+        ).fetchall()
+        for r in newest:
+            if r["map_path"] not in gsd:
+                gsd[r["map_path"]] = open_map(r["map_path"]).resolution_m
+            g = gsd[r["map_path"]]
+            for q in db.execute(
+                "SELECT status, inliers, error_m FROM query_results WHERE run_id=? AND config_key=?",
+                (r["run_id"], r["config_key"]),
+            ):
+                if q["error_m"] is None or not str(q["status"]).startswith("localized"):
+                    continue
+                rows.append(
+                    {
+                        "map": r["map"],
+                        "set": r["queries"],
+                        "source": source_of(q["status"]),
+                        "inliers": int(q["inliers"] or 0),
+                        "error_m": float(q["error_m"]),
+                        "gsd": g,
+                        "t_m": max(5.0, 2.0 * g),
+                    }
+                )
+    return rows
+
+
+def fit(rows: list[dict]) -> dict[str, StageModel]:
+    """Per stage: logistic regression of 'within t' on ln(inliers) (L2-regularised, so a stage whose every fix
+    is right gets a high but finite confidence), and the sigma scale from the median error."""
+    models = {}
+    for s in SOURCES:
+        rs = [r for r in rows if r["source"] == s]
+        if not rs:
+            models[s] = StageModel(a=0.0, b=0.0, sigma_px=1.0)
+            continue
+        x = np.log(np.maximum(1, [r["inliers"] for r in rs]))
+        y = np.array([r["error_m"] <= r["t_m"] for r in rs], float)
+
+        def loss(w, x=x, y=y):
+            z = w[0] + w[1] * x
+            return float(np.sum(np.logaddexp(0, z) - y * z) + 0.5 * (w[0] ** 2 + w[1] ** 2) / 25.0)
+
+        a, b = minimize(loss, np.zeros(2), method="L-BFGS-B").x
+        # sigma: error in map px scaled to 100 inliers; median radial error of a 2-D normal = 1.1774 sigma
+        e100 = [r["error_m"] / r["gsd"] / math.sqrt(100.0 / max(1, r["inliers"])) for r in rs]
+        models[s] = StageModel(
+            a=round(float(a), 3), b=round(float(b), 3), sigma_px=round(float(np.median(e100)) / 1.1774, 3)
+        )
+    return models
+
+
+def reliability(rows: list[dict]) -> list[dict]:
+    """Leave-one-map-out: each map's fixes scored by the model fitted on the other maps."""
+    scored = []
+    for m in sorted({r["map"] for r in rows}):
+        models = fit([r for r in rows if r["map"] != m])
+        for r in rows:
+            if r["map"] == m:
+                mod = models[r["source"]]
+                scored.append({**r, "conf": mod.confidence(r["inliers"]), "sigma": mod.sigma_m(r["inliers"], r["gsd"])})
+    return scored
+
+
+def print_tables(scored: list[dict]) -> None:
+    print("| confidence bin | fixes | mean confidence | observed within t |")
+    print("|---|---|---|---|")
+    for lo, hi in itertools.pairwise(BINS):
+        b = [r for r in scored if lo <= r["conf"] < hi]
+        if b:
+            hit = np.mean([r["error_m"] <= r["t_m"] for r in b])
+            print(f"| {lo:.2f}-{min(hi, 1):.2f} | {len(b)} | {np.mean([r['conf'] for r in b]):.3f} | {hit:.3f} |")
+    print()
+    print("| set | fixes | within sigma | within 2 sigma | median sigma (m) | median error (m) |")
+    print("|---|---|---|---|---|---|")
+    by = defaultdict(list)
+    for r in scored:
+        by[r["set"]].append(r)
+    for s, rs in sorted(by.items()):
+        e, sg = np.array([r["error_m"] for r in rs]), np.array([r["sigma"] for r in rs])
+        print(
+            f"| {s} | {len(rs)} | {np.mean(e <= sg):.2f} | {np.mean(e <= 2 * sg):.2f} | {np.median(sg):.2f} | {np.median(e):.2f} |"
+        )
+
+
+def main(argv: list[str]) -> int:
+    rows = load(argv)
+    print(f"{len(rows)} fixes; stages: { {s: sum(r['source'] == s for r in rows) for s in SOURCES} }\n")
+    print_tables(reliability(rows))
+    print("\nMODELS fitted on every map (paste into aeroloc/localization/confidence.py):")
+    for s, m in fit(rows).items():
+        print(f'    "{s}": {m!r},')
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,54 @@
+"""One flight tracked into a streamed, resumable CSV (``name,time,lat,lon,status,sigma_m,source,...``).
+
+Rows are flushed as they come (:class:`aeroloc.core.io.ResumableCSV`); a run interrupted and started again with
+the same database, flight and settings keeps the finished rows and continues after the last one from its
+position, pose and velocity (the odometry chain restarts there). Memory does not grow with the flight: frames
+are read one at a time and only the filter state is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+from aeroloc.core.io import ResumableCSV, config_key, file_identity
+from aeroloc.flight.frames import Flight
+from aeroloc.flight.tracker import COLUMNS, TrackConfig, Tracker, TrackPoint
+
+
+def signature(db, flight: Flight, options, config: TrackConfig) -> str:
+    src = flight.source if flight.source.is_file() else None
+    ident = (
+        file_identity(src) if src else [(f.name, f.time) for f in flight.frames[:: max(1, len(flight.frames) // 50)]]
+    )
+    return config_key(
+        "track-v1", db.tiles_hash(), str(flight.source), ident, len(flight.frames), repr(options), asdict(config)
+    )
+
+
+def track_flight(
+    localizer, flight: Flight, out, config: TrackConfig | None = None, on_point=None, limit: int | None = None
+) -> list[TrackPoint]:
+    """Track ``flight`` into ``out``; ``on_point(point)`` is called for every new point (MAVLink, progress);
+    ``limit`` stops after that many frames in all (the rest stays for a resume: tests of interruption)."""
+    config = config or TrackConfig()
+    csv = ResumableCSV(out, COLUMNS, signature(localizer.db, flight, localizer.options, config))
+    done = csv.finished()
+    if done is not None:
+        return [TrackPoint.from_row(r) for r in done]
+    rows = csv.start()
+    points = [TrackPoint.from_row(r) for r in rows]
+    tracker = Tracker(localizer, config)
+    tracker.restore(points[-2:])
+    try:
+        for ref, image in flight.images(len(points)):
+            if limit is not None and len(points) >= limit:
+                return points
+            p = tracker(ref, image)
+            csv.write(p.row())
+            points.append(p)
+            if on_point is not None:
+                on_point(p)
+        csv.finish()
+    finally:
+        csv.close()
+    return points

@@ -1,0 +1,327 @@
+"""The tracking loop: one flight's frames in, one track point per frame out.
+
+Per frame: odometry against the previous frame moves the pose (or the filter coasts on its velocity); the frame
+is matched against the map window around the prediction (:mod:`aeroloc.flight.window_fix`) and the fix goes
+through the filter's gate (:mod:`aeroloc.flight.filter`). At the start, and whenever the track is lost, the
+single-image pipeline (``Localizer``) searches the whole map, with the self-calibrated ground resolution and
+heading as priors once there was a fix. ``source`` says what placed each point: ``global fix``, ``tracked``
+(odometry and/or a windowed fix), ``coasted`` (the motion model alone) or ``lost`` (no position).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aeroloc.core.priors import Priors
+from aeroloc.flight.calibration import Pose, pose_from_dense, pose_from_homography
+from aeroloc.flight.filter import FilterConfig, PositionFilter
+from aeroloc.flight.frames import FrameRef
+from aeroloc.flight.odometry import Odometry
+from aeroloc.flight.window_fix import WindowConfig, WindowMatcher
+
+COLUMNS = ["name", "time", "lat", "lon", "status", "sigma_m", "source", "heading_deg", "yaw_deg", "gsd_m", "ms"]
+SOURCES = ("global fix", "tracked", "coasted", "lost")
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
+    blank_std: float = 3.0  # a frame whose grey levels vary less than this is blank (black, lens cap, fog)
+    relocalize_heading_dps: float = 10.0  # heading prior after a loss widens by this per second lost
+    fix_every: int = 2  # while the uncertainty is below a fix's, a windowed fix on every n-th frame only
+    anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track
+    anchor_spread_px: float = 2.0  # ... agreeing within max(10 m, this many map px)
+    pipeline_every: int = 5  # while lost: the full single-image pipeline on every n-th frame (dense otherwise)
+
+
+@dataclass
+class TrackPoint:
+    name: str
+    time: float
+    lat: float
+    lon: float
+    status: str
+    sigma_m: float
+    source: str
+    heading_deg: float = math.nan  # the pose's turn (project convention), for resuming and the dense stage
+    yaw_deg: float = math.nan  # compass bearing of the frame's top
+    gsd_m: float = math.nan
+    ms: float = 0.0
+
+    @property
+    def localized(self) -> bool:
+        return math.isfinite(self.lat) and math.isfinite(self.lon)
+
+    def row(self) -> dict[str, str]:
+        def num(v, fmt):
+            return format(v, fmt) if math.isfinite(v) else ""
+
+        return {
+            "name": self.name,
+            "time": f"{self.time:.3f}",
+            "lat": num(self.lat, ".8f"),
+            "lon": num(self.lon, ".8f"),
+            "status": self.status,
+            "sigma_m": num(self.sigma_m, ".2f"),
+            "source": self.source,
+            "heading_deg": num(self.heading_deg, ".2f"),
+            "yaw_deg": num(self.yaw_deg, ".2f"),
+            "gsd_m": num(self.gsd_m, ".4f"),
+            "ms": f"{self.ms:.1f}",
+        }
+
+    @classmethod
+    def from_row(cls, r: dict) -> TrackPoint:
+        def f(k):
+            v = (r.get(k) or "").strip()
+            return float(v) if v else math.nan
+
+        return cls(
+            r["name"],
+            f("time"),
+            f("lat"),
+            f("lon"),
+            r.get("status", ""),
+            f("sigma_m"),
+            r.get("source", ""),
+            f("heading_deg"),
+            f("yaw_deg"),
+            f("gsd_m"),
+            f("ms") if r.get("ms") else 0.0,
+        )
+
+
+class Tracker:
+    """Frames in time order -> :class:`TrackPoint`; ``localizer`` is a :class:`aeroloc.localization.Localizer`
+    (its map is the map tracked on)."""
+
+    def __init__(self, localizer, config: TrackConfig | None = None):
+        self.cfg = config or TrackConfig()
+        self.localizer = localizer
+        self.map = localizer.map
+        if self.map is None:
+            from aeroloc.core.errors import AerolocError
+
+            raise AerolocError("tracking needs the database's map file (it could not be opened)")
+        self.gsd = self.map.resolution_m
+        self.matcher = WindowMatcher(self.map, self.cfg.window)
+        self.odo = Odometry()
+        self.filter = PositionFilter(self.cfg.filter)
+        self.pose: Pose | None = None
+        self.calibration: Pose | None = None  # the last fixed pose: ground resolution and heading to carry
+        self.prev_time: float | None = None
+        self.lost_since: float | None = None
+        self.rejected: list[tuple[float, float]] = []  # offsets fix - prediction (m) of the fixes rejected in a row
+        self.frames_since_fix = 0
+        self.lost_frames = 0
+        self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
+
+    # --- resuming ---------------------------------------------------------------------------------------------
+    def restore(self, points: list[TrackPoint]) -> None:
+        """Continue after ``points`` (a resumed run's finished rows): the last position, pose and velocity."""
+        if not points:
+            return
+        last = points[-1]
+        self.prev_time = last.time
+        if not last.localized or not math.isfinite(last.gsd_m):
+            self.lost_since = last.time
+            return
+        col, row = self.map.latlon_to_pixel(last.lat, last.lon)
+        self.pose = Pose(float(col), float(row), last.heading_deg, last.gsd_m / self.gsd)
+        self.calibration, self.cal_time = self.pose, last.time
+        self.filter.reset(float(col) * self.gsd, float(row) * self.gsd, last.sigma_m)
+        prev = points[-2] if len(points) > 1 else None
+        if prev is not None and prev.localized and last.time > prev.time:
+            pc, pr = self.map.latlon_to_pixel(prev.lat, prev.lon)
+            dt = last.time - prev.time
+            self.filter.est.vx = (float(col) - float(pc)) * self.gsd / dt
+            self.filter.est.vy = (float(row) - float(pr)) * self.gsd / dt
+
+    # --- one frame ----------------------------------------------------------------------------------------------
+    def __call__(self, ref: FrameRef, image: np.ndarray | None) -> TrackPoint:
+        t0 = time.perf_counter()
+        dt = 0.0 if self.prev_time is None else ref.time - self.prev_time
+        self.prev_time = ref.time
+        blank = image is None or float(image[::4, ::4].std()) < self.cfg.blank_std
+        step = None if blank else self.odo(image)
+        if blank:
+            self.odo.reset()
+        if self.filter.est is not None and self.pose is not None:
+            point = self._track(ref, image, blank, step, dt)
+        elif blank:
+            point = self._point(ref, "lost", "undecodable frame" if image is None else "blank frame")
+        else:
+            point = self._relocalize(ref, image)
+        point.ms = (time.perf_counter() - t0) * 1000
+        return point
+
+    def _track(self, ref: FrameRef, image, blank: bool, step, dt: float) -> TrackPoint:
+        size = None if image is None else (image.shape[1], image.shape[0])
+        moved = False
+        if step is not None:
+            new = self.pose.moved(step.A, size)
+            before = (self.filter.est.x, self.filter.est.y)
+            self.filter.predict_odometry((new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd, dt)
+            moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
+            self.pose = new if moved else self.pose
+        if not moved:
+            self.filter.predict_coast(dt)
+        e = self.filter.est
+        self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, self.pose.scale)
+        reason = "undecodable frame" if image is None else "blank frame" if blank else ""
+        source = "tracked" if moved else "coasted"
+        self.frames_since_fix += 1
+        due = self.frames_since_fix >= self.cfg.fix_every or e.sigma > self.cfg.filter.fix_sigma_m
+        if not blank and due:
+            status, fixed = self._window_fix(image, size)
+            source = "tracked" if (moved or fixed) else "coasted"
+            reason = status
+        if self.filter.lost:
+            self.filter.lose()
+            self.pose, self.lost_since = None, ref.time
+            if not blank:
+                return self._relocalize(ref, image, f"track lost ({reason}); ")
+            return self._point(ref, "lost", f"track lost ({reason})")
+        return self._point(ref, source, reason or ("odometry" if moved else "coasting"))
+
+    def _window_fix(self, image, size) -> tuple[str, bool]:
+        """Match the frame around the prediction and gate the fix; (status, whether a fix was fused)."""
+        from aeroloc.flight.calibration import blend
+
+        fix = self.matcher(image, self.pose, self.filter.est.sigma / self.gsd)
+        self.frames_since_fix = 0
+        if fix is None:
+            self.filter.misses += 1
+            return "odometry (no distinct match in the window)", False
+        self.filter.misses = 0
+        sigma_fix = max(self.cfg.filter.fix_sigma_m, self.gsd)
+        e = self.filter.est
+        offset = (fix.x * self.gsd - e.x, fix.y * self.gsd - e.y)
+        ok, d = self.filter.update(fix.x * self.gsd, fix.y * self.gsd, sigma_fix)
+        if not ok:
+            status = f"fix rejected: {d:.0f} m from the prediction (gate {self.filter.gate(sigma_fix):.0f} m)"
+            if not self._reanchor(offset, fix, sigma_fix):
+                return status, False
+            status = f"re-anchored: {self.cfg.anchor_after} rejected fixes agreed ({d:.0f} m from the prediction)"
+        else:
+            self.rejected.clear()
+            status = f"window fix (score {fix.score:.2f}, {d:.1f} m from the prediction)"
+        e = self.filter.est
+        # position only, the heading nudged: the dense refinement's scale and turn come in 3 % / 2° steps and
+        # were biased on NAIP flights (scales 0.94-0.97 preferred at the true pose), while the odometry's
+        # scale stayed within 1 % of the truth, so the ground resolution is carried by the odometry
+        self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, fix.turn_deg, None, k=0.1)
+        self.calibration, self.cal_time = self.pose, self.prev_time
+        return status, True
+
+    def _reanchor(self, offset: tuple[float, float], fix, sigma_fix: float) -> bool:
+        """Rejected fixes that keep the same offset from the prediction are the odometry drifting, not the fixes
+        being wrong (wrong fixes scatter): after ``anchor_after`` of them agreeing, the track moves to the fix."""
+        self.rejected.append(offset)
+        last = self.rejected[-self.cfg.anchor_after :]
+        if len(last) < self.cfg.anchor_after:
+            return False
+        spread = max(10.0, self.cfg.anchor_spread_px * self.gsd)
+        xs, ys = [o[0] for o in last], [o[1] for o in last]
+        if max(xs) - min(xs) > spread or max(ys) - min(ys) > spread:
+            return False
+        self.rejected.clear()
+        v = (self.filter.est.vx, self.filter.est.vy)
+        self.filter.reset(fix.x * self.gsd, fix.y * self.gsd, 2 * sigma_fix)
+        self.filter.est.vx, self.filter.est.vy = v
+        return True
+
+    def _priors(self, ref: FrameRef, width: int) -> Priors:
+        """The frame's own priors, else the carried calibration: ground resolution ±25 %, heading widening with
+        the time since the last fix (the aircraft may have turned meanwhile)."""
+        p = ref.priors.with_image_width(width) if ref.priors.known else ref.priors
+        cal = self.calibration
+        if cal is None:
+            return p
+        lost_s = 0.0 if self.cal_time is None else max(0.0, ref.time - self.cal_time)
+        gsd = p.gsd_m if p.gsd_m is not None else cal.gsd_m(self.gsd)
+        heading, tol = p.heading_deg, p.heading_tol_deg
+        if heading is None:
+            heading, tol = cal.turn_deg % 360.0, min(180.0, 15.0 + self.cfg.relocalize_heading_dps * lost_s)
+        return Priors(
+            gsd_m=gsd,
+            heading_deg=heading,
+            heading_tol_deg=tol,
+            width_px=width,
+            gsd_source="carried",
+            heading_source="carried",
+        )
+
+    def _relocalize(self, ref: FrameRef, image, note: str = "") -> TrackPoint:
+        """A global fix from the whole map: with a ground resolution known (the frame's prior or the carried
+        calibration) the dense stage alone, cheap enough for every frame; the full single-image pipeline at the
+        start and on every ``pipeline_every``-th lost frame."""
+        size = (image.shape[1], image.shape[0])
+        priors = self._priors(ref, size[0])
+        self.lost_frames += 1
+        pose, status = None, "not localized"
+        if priors.gsd_m is not None and self.localizer.dense is not None:
+            pose, status = self._dense_global(image, priors)
+        if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
+            loc = self.localizer(ref.name, image, priors=priors)
+            pose = self._pose_of(loc, size) if loc.localized else None
+            status = loc.status or status
+        if pose is None:
+            return self._point(ref, "lost", note + status)
+        self.pose = self.calibration = pose
+        self.lost_since, self.lost_frames, self.cal_time = None, 0, ref.time
+        self.rejected.clear()
+        self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
+        return self._point(ref, "global fix", note + status)
+
+    def _dense_global(self, image, priors: Priors) -> tuple[Pose | None, str]:
+        """The dense stage over the whole map (or the retrieved tiles' region when the map is too large) at the
+        known ground resolution (±15 % in scale) and the headings the prior allows."""
+        from aeroloc.localization.dense_stage import scale_ladder
+
+        dense = self.localizer.dense
+        work = max(priors.gsd_m, self.gsd)
+        f = self.gsd / work
+        tiles = []
+        if self.map.width * self.map.height * f * f > dense.max_region_px:
+            tiles = [self.localizer.db.by_id[t] for t in self.localizer.retriever(image, 20).tile_ids]
+        d = dense.locate(image, tiles, priors.gsd_m, priors.heading_search(), scale_ladder(0.15))
+        if d is None:
+            return None, "not localized: no distinct dense match over the map"
+        return pose_from_dense(d, self.gsd), d.status()
+
+    def _pose_of(self, loc, size) -> Pose | None:
+        """The pose a global fix gives: centre from its lat/lon, turn and scale from the dense match or the
+        local-feature homography."""
+        col, row = self.map.latlon_to_pixel(loc.lat, loc.lon)
+        if loc.dense is not None:
+            p = pose_from_dense(loc.dense, self.gsd)
+        elif loc.best is not None and loc.best.H is not None:
+            tile = self.localizer.db.by_id[loc.best.tile_id]
+            p = pose_from_homography(loc.best.H, size, tile.col, tile.row)
+        else:
+            return None
+        return None if p is None else Pose(float(col), float(row), p.turn_deg, p.scale)
+
+    def _point(self, ref: FrameRef, source: str, status: str) -> TrackPoint:
+        if source == "lost" or self.filter.est is None or self.pose is None:
+            return TrackPoint(ref.name, ref.time, math.nan, math.nan, status, math.nan, "lost")
+        lat, lon = self.map.pixel_to_latlon(self.pose.x, self.pose.y)
+        p = self.pose
+        return TrackPoint(
+            ref.name,
+            ref.time,
+            float(lat),
+            float(lon),
+            status,
+            self.filter.est.sigma,
+            source,
+            p.turn_deg % 360.0,
+            p.yaw_deg(),
+            p.gsd_m(self.gsd),
+        )

@@ -1,0 +1,188 @@
+"""Flight mode end to end on a short simulated NAIP flight (frames composed from the 2009-2015 crops, tracked
+against the 2020 map): simulator properties, the track's accuracy and sources, resuming, GeoJSON/KML and a
+MAVLink GPS_INPUT stream decoded by a real pymavlink listener."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+
+import pytest
+
+from aeroloc.core import geo
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory, naip_map, naip_dev):
+    from aeroloc.core.queries import load_queries
+    from aeroloc.flight.composite import compose
+    from aeroloc.flight.simulate import FlightPlan, write_flight
+    from aeroloc.maps.sources import open_map
+
+    out = tmp_path_factory.mktemp("flight")
+    m = open_map(naip_map)
+    comp = compose(m, load_queries(naip_dev, priors="none"))
+    plan = FlightPlan(frames=40, gap_frames=10, gap_start=0.5, seed=3)
+    write_flight(out, m, comp, plan)
+    return out, plan, m
+
+
+@pytest.fixture(scope="module")
+def tracked(flight, naip_db, tmp_path_factory):
+    from aeroloc.flight.frames import load_flight
+    from aeroloc.flight.run import track_flight
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.retrieval.database import Database
+
+    folder, _, _ = flight
+    localizer = Localizer(Database(naip_db))
+    fl = load_flight(folder / "frames.csv", folder / "telemetry.csv")
+    out = tmp_path_factory.mktemp("track") / "track.csv"
+    return track_flight(localizer, fl, out), out, localizer, fl
+
+
+def _truth(folder):
+    with open(folder / "truth.csv", newline="") as f:
+        return {r["name"]: r for r in csv.DictReader(f)}
+
+
+def test_simulated_flight_overlaps_turns_and_loses_frames(flight):
+    folder, plan, m = flight
+    truth = list(_truth(folder).values())
+    with open(folder / "frames.csv", newline="") as f:
+        frames = list(csv.DictReader(f))
+    assert set(frames[0]) == {"name", "time"}  # no position, no priors in what the camera gives
+    assert len(frames) == plan.frames - plan.gap_frames // 2  # the second half of the gap is missing
+    black = [r for r in frames if (folder / "frames" / r["name"]).stat().st_size < 5000]
+    assert len(black) == plan.gap_frames // 2
+    gaps = [float(b["time"]) - float(a["time"]) for a, b in itertools.pairwise(frames)]
+    assert max(gaps) == pytest.approx((plan.gap_frames // 2 + 1) / plan.rate_hz)
+    for a, b in itertools.pairwise(truth):  # consecutive frames overlap >= 50 % along the track
+        step = float(geo.geodesic_distance(float(a["lat"]), float(a["lon"]), float(b["lat"]), float(b["lon"])))
+        if float(b["time"]) - float(a["time"]) <= 1 / plan.rate_hz + 1e-6:
+            assert step <= 0.5 * plan.height * float(a["gsd_m"])
+    yaws = [float(r["yaw_deg"]) for r in truth]
+    assert max(abs((b - a + 180) % 360 - 180) for a, b in itertools.pairwise(yaws)) > 0.5  # it turns
+    assert all(m.contains_latlon(float(r["lat"]), float(r["lon"])) for r in truth)
+
+
+def test_track_is_accurate_after_the_first_fix_and_recovers_after_the_gap(flight, tracked):
+    folder, plan, m = flight
+    points, out, _, _ = tracked
+    truth = _truth(folder)
+    t = max(5.0, 2 * m.resolution_m)
+    wrong = max(25.0, 10 * m.resolution_m)
+    first = next(i for i, p in enumerate(points) if p.source == "global fix")
+    assert first <= 2
+    assert {p.source for p in points} <= {"global fix", "tracked", "coasted", "lost"}
+    errors = []
+    for p in points[first:]:
+        r = truth[p.name]
+        if p.localized:
+            e = float(geo.geodesic_distance(p.lat, p.lon, float(r["lat"]), float(r["lon"])))
+            assert math.isfinite(p.sigma_m) and p.sigma_m > 0
+            if p.source == "coasted":  # no image evidence (black frames): the motion model, honest about it
+                assert e <= 3 * p.sigma_m
+            else:
+                errors.append(e)
+    assert max(errors) <= wrong  # no wrong fix
+    assert sum(e <= t for e in errors) >= 0.9 * len(errors)
+    # the frames after the gap are back within t in at most 3 frames
+    after = [
+        p
+        for p in points
+        if float(truth[p.name]["time"]) > (plan.frames * plan.gap_start + plan.gap_frames) / plan.rate_hz - 0.75
+    ]
+    back = next(
+        i
+        for i, p in enumerate(after)
+        if p.localized
+        and float(geo.geodesic_distance(p.lat, p.lon, float(truth[p.name]["lat"]), float(truth[p.name]["lon"]))) <= t
+    )
+    assert back < 3
+    with open(out, newline="") as f:
+        header = next(csv.reader(f))
+    assert header[:7] == ["name", "time", "lat", "lon", "status", "sigma_m", "source"]
+
+
+def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path):
+    from aeroloc.flight.run import track_flight
+
+    points, _, localizer, fl = tracked
+    out = tmp_path / "track.csv"
+    part = track_flight(localizer, fl, out, limit=12)
+    assert len(part) == 12 and not out.exists() and out.with_name("track.csv.part").is_file()
+    full = track_flight(localizer, fl, out)
+    assert out.is_file() and len(full) == len(points)
+    assert [p.row() for p in full[:12]] == [p.row() for p in part]  # finished rows kept, not recomputed
+    assert [p.name for p in full] == [p.name for p in points]
+    # the resumed part continues from the stored position (no new global search on the next frames)
+    assert all(p.localized and p.source != "global fix" for p in full[12:15])
+    again = track_flight(localizer, fl, out)  # a finished track is read back
+    assert [p.row() for p in again] == [p.row() for p in full]
+
+
+def test_geojson_and_kml(tracked, tmp_path, flight):
+    from aeroloc.flight.outputs import write_geojson, write_kml
+
+    points, _, _, _ = tracked
+    truth = {n: (float(r["lat"]), float(r["lon"])) for n, r in _truth(flight[0]).items()}
+    write_geojson(tmp_path / "t.geojson", points, truth)
+    gj = json.loads((tmp_path / "t.geojson").read_text())
+    line, *pts = gj["features"]
+    located = [p for p in points if p.localized]
+    assert line["geometry"]["type"] == "LineString" and len(line["geometry"]["coordinates"]) == len(located)
+    assert len(pts) == len(located)
+    assert {"status", "sigma_m", "source", "error_m"} <= set(pts[0]["properties"])
+    assert pts[0]["geometry"]["coordinates"] == [located[0].lon, located[0].lat]
+    write_kml(tmp_path / "t.kml", points)
+    text = (tmp_path / "t.kml").read_text()
+    assert text.count("<Placemark") == len(located) + 1 and "<LineString" in text
+
+
+def test_mavlink_gps_input_decoded_by_a_real_listener(tracked):
+    import socket
+
+    from pymavlink import mavutil
+
+    from aeroloc.flight.outputs import MavlinkOutput, gps_time
+
+    points, _, _, _ = tracked
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    listener = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    sender = MavlinkOutput(f"udpout:127.0.0.1:{port}")
+    sent = (
+        points[:6] + [next(p for p in points if not p.localized)]
+        if any(not p.localized for p in points)
+        else points[:6]
+    )
+    got = []
+    try:
+        for p in sent:
+            sender.send(p)
+            msg = listener.recv_match(type="GPS_INPUT", blocking=True, timeout=5)
+            assert msg is not None
+            got.append(msg)
+    finally:
+        sender.close()
+        listener.close()
+    f = mavutil.mavlink
+    for p, m in zip(sent, got, strict=True):
+        assert m.get_srcComponent() == 220
+        assert m.gps_id == 0
+        assert m.ignore_flags & f.GPS_INPUT_IGNORE_FLAG_ALT and m.ignore_flags & f.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ
+        assert not m.ignore_flags & f.GPS_INPUT_IGNORE_FLAG_HORIZONTAL_ACCURACY
+        assert not m.ignore_flags & f.GPS_INPUT_IGNORE_FLAG_HDOP
+        g = gps_time(m.time_usec / 1e6)
+        assert (m.time_week, m.time_week_ms) == (g.week, g.week_ms) and m.time_week > 2000
+        if p.localized:
+            assert m.fix_type == 3 and m.satellites_visible >= 6
+            assert m.lat == round(p.lat * 1e7) and m.lon == round(p.lon * 1e7)
+            assert m.horiz_accuracy == pytest.approx(p.sigma_m, rel=1e-5)
+            assert m.hdop == pytest.approx(p.sigma_m / 5, rel=1e-5)
+        else:
+            assert m.fix_type == 0 and m.lat == 0 and m.satellites_visible == 0

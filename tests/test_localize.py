@@ -52,6 +52,24 @@ def test_cross_season_queries_localize_within_25_m(localizer, db, queries):
         err = geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon)
         assert err < 25.0, f"{name}: {err:.1f} m from the truth"
         assert set(res.times_ms) >= {"descriptor", "search", "local_features", "rerank", "align"}
+        # 350-450 inliers: a confident fix whose stated uncertainty is a few map pixels (5 m/px), not metres-free
+        assert 0.5 <= res.confidence <= 1.0, res.confidence
+        assert 2.5 <= res.sigma_m <= 25.0, res.sigma_m
+        assert float(res.row()["confidence"]) == pytest.approx(res.confidence, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_a_fix_under_the_confidence_floor_is_not_localized(db, queries):
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
+
+    q = queries[GOOD[0]]
+    strict = Localizer(db, LocalizeOptions(method=METHOD, rerank=RERANK, min_confidence=0.99999), "cpu")
+    res = strict(q.name, read_image(q.path), top_n=10)
+    assert res.status.startswith("not localized: confidence "), res.status
+    assert not res.localized and res.confidence is None and res.row()["lat"] == ""
+    with pytest.raises(Exception, match="min-confidence must be in"):
+        LocalizeOptions(min_confidence=1.5)
 
 
 @pytest.mark.slow

@@ -1,0 +1,96 @@
+#!/usr/bin/env python
+"""Seconds per query of single-image localization, per shared set and prior mode, as CPU time of one thread.
+
+Why CPU time with one torch thread: wall time on this shared 2-core machine depends on whatever else runs; the
+CPU time of a single-threaded run is what one idle core takes (an upper bound of the wall time on 2 idle cores).
+Prints a table: set, priors, queries, share within t = max(5 m, 2 map px), wrong (> max(25 m, 10 map px)), median
+and p90 CPU s/query, and the median of each stage.
+
+usage: python benchmarks/localize_speed.py [--n 12] [--sets levir-any,szada-any,...] [--modes none,rough,exact]
+       (databases are built once under --cache, tiles about the queries' footprint as in experiments/atlas.yaml)
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+MR = DATA / "multi-region"
+SETS = {  # name: (map, queries, tile_m)
+    "naip-dev": (DATA / "naip-nd/map_20200831.tif", DATA / "naip-nd/dev/queries.csv", 1000),
+    "naip-rotated": (DATA / "naip-nd/map_20200831.tif", DATA / "naip-nd/dev-rotated/queries.csv", 1000),
+    "toledo": (DATA / "toledo/orthomosaic.tif", DATA / "toledo/queries.csv", 200),
+    "levir-north": (MR / "levir-tx/map.tif", MR / "levir-tx/north/queries.csv", 150),
+    "levir-any": (MR / "levir-tx/map.tif", MR / "levir-tx/any/queries.csv", 150),
+    "szada-north": (MR / "szada-hu/map.tif", MR / "szada-hu/north/queries.csv", 340),
+    "szada-any": (MR / "szada-hu/map.tif", MR / "szada-hu/any/queries.csv", 340),
+}
+
+
+def run_set(name: str, mode: str, n: int, cache: Path) -> dict:
+    from aeroloc import LocalizeOptions, Localizer, build_database, load_queries, read_image
+    from aeroloc.bench.experiment import sample_queries
+    from aeroloc.core import geo
+
+    map_path, queries_path, tile_m = SETS[name]
+    db = build_database(map_path, cache / f"{map_path.parent.name}-{map_path.stem}-{tile_m}", tile_m=tile_m)
+    loc = Localizer(db, LocalizeOptions())
+    qs = sample_queries(load_queries(queries_path, priors=mode, seed=0), n)
+    gsd = loc.map_gsd
+    t_m, wrong_m = max(5.0, 2 * gsd), max(25.0, 10 * gsd)
+    loc(qs[0].name, read_image(qs[0].path), priors=qs[0].priors)  # warm-up: models, map pyramid
+    cpu, hits, wrong, stages = [], 0, 0, {}
+    for q in qs:
+        image = read_image(q.path)
+        c0 = time.process_time()
+        r = loc(q.name, image, priors=q.priors)
+        cpu.append(time.process_time() - c0)
+        for s, ms in r.times_ms.items():
+            stages.setdefault(s, []).append(ms / 1000)
+        if r.localized:
+            e = geo.geodesic_distance(q.lat, q.lon, r.lat, r.lon)
+            hits += e <= t_m
+            wrong += e > wrong_m
+    cpu.sort()
+    return {
+        "set": name,
+        "priors": mode,
+        "n": len(qs),
+        "within_t": hits / len(qs),
+        "wrong": wrong,
+        "median_s": statistics.median(cpu),
+        "p90_s": cpu[int(0.9 * (len(cpu) - 1))],
+        "stages": {s: statistics.median(v) for s, v in stages.items()},
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=12)
+    ap.add_argument("--sets", default=",".join(SETS))
+    ap.add_argument("--modes", default="none,rough,exact")
+    ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
+    args = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    print("| set | priors | n | within t | wrong | CPU s/query median | p90 | stage medians (s) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.sets.split(","):
+        for mode in args.modes.split(","):
+            r = run_set(name, mode, args.n, args.cache)
+            st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items() if v >= 0.005)
+            print(
+                f"| {r['set']} | {r['priors']} | {r['n']} | {r['within_t']:.2f} | {r['wrong']} | "
+                f"{r['median_s']:.2f} | {r['p90_s']:.2f} | {st} |",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

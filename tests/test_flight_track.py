@@ -186,3 +186,46 @@ def test_mavlink_gps_input_decoded_by_a_real_listener(tracked):
             assert m.hdop == pytest.approx(p.sigma_m / 5, rel=1e-5)
         else:
             assert m.fix_type == 0 and m.lat == 0 and m.satellites_visible == 0
+
+
+def test_html_track_renders_offline_in_chromium(tracked, flight, tmp_path):
+    import re
+    import shutil
+    import subprocess
+
+    from aeroloc.flight.html import write_track_html
+
+    exe = shutil.which("chromium")
+    if exe is None:
+        pytest.skip("chromium is not on PATH (Debian: apt-get install chromium); the track page is not browser-tested")
+    points, _, localizer, _ = tracked
+    truth = {n: (float(r["lat"]), float(r["lon"])) for n, r in _truth(flight[0]).items()}
+    page = tmp_path / "track.html"
+    write_track_html(page, points, localizer.db.info["map"]["path"], truth)
+    text = page.read_text()
+    fetch = r"""<(img|script|link|iframe|source)\b[^>]*\b(src|href)\s*=\s*["']?(https?:)?//"""
+    assert not re.search(fetch, text)  # nothing fetched from the network
+    dom = subprocess.run(
+        [
+            exe,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-dev-shm-usage",
+            f"--user-data-dir={tmp_path / 'chrome'}",
+            "--dump-dom",
+            "--virtual-time-budget=4000",
+            page.as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=90,
+    ).stdout
+    assert not re.search(fetch, dom)
+    located = sum(p.localized for p in points)
+    assert f'data-drawn="{located}"' in dom  # the script ran to the end: every localized frame drawn
+    assert 'class="leaflet-image-layer' in dom  # the map imagery under the track
+    # SVG paths: track + truth + map outline, and per localized frame one error line and one dot
+    assert len(re.findall(r"<path[^>]*leaflet-interactive", dom)) == 3 + 2 * located

@@ -1,0 +1,133 @@
+"""Flight mode benchmark (issue #14): every flight of an experiments file tracked and scored, one table row each.
+
+usage: nice python benchmarks/flights.py experiments/flights.yaml [--only NAME-SUBSTRING]
+
+Simulated flights are written once into OUT/<name>/ (aeroloc.flight.simulate) and tracked without truth; the
+Toledo photo flights are the shared set's photos of one camera in EXIF time order, scored against their EXIF GPS
+(itself ±2-5 m). RSS is read from /proc at the first frame and the last (the memory run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import yaml
+
+from aeroloc.flight.filter import FilterConfig
+from aeroloc.flight.frames import load_flight
+from aeroloc.flight.metrics import score
+from aeroloc.flight.run import track_flight
+from aeroloc.flight.tracker import TrackConfig
+from aeroloc.localization.localizer import Localizer
+from aeroloc.retrieval.database import Database
+
+
+def rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+
+
+def simulated(f: dict, folder: Path):
+    from aeroloc.core.queries import load_queries
+    from aeroloc.flight.composite import compose
+    from aeroloc.flight.simulate import FlightPlan, write_flight
+    from aeroloc.maps.sources import open_map
+
+    w, h = (int(v) for v in str(f.get("size", "480x360")).split("x"))
+    plan = FlightPlan(frames=f["frames"], gap_frames=f.get("gap", 30), seed=f.get("seed", 0), width=w, height=h)
+    if not (folder / "truth.csv").is_file():
+        m = open_map(f["map"])
+        comp = compose(m, [q for c in f["crops"] for q in load_queries(c, priors="none")])
+        write_flight(folder, m, comp, plan)
+    with open(folder / "truth.csv", newline="") as fh:
+        truth = {r["name"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(fh)}
+    tel = folder / "telemetry.csv" if f.get("telemetry") else None
+    g0 = round(plan.gap_start * plan.frames)
+    gap_end = (g0 + plan.gap_frames - 0.5) / plan.rate_hz if plan.gap_frames else None
+    return load_flight(folder / "frames.csv", tel), truth, gap_end
+
+
+def photos(f: dict, folder: Path):
+    src = Path(f["photos"])
+    shots = folder / "photos"
+    shots.mkdir(parents=True, exist_ok=True)
+    for p in sorted(src.glob(f"{f.get('prefix', '')}*")):
+        link = shots / p.name
+        if not link.exists():
+            link.symlink_to(p.resolve())
+    flight = load_flight(shots)
+    return flight, {fr.name: fr.truth for fr in flight.frames if fr.truth}, None
+
+
+def run_one(f: dict, out: Path) -> dict:
+    folder = out / slug(f["name"])
+    folder.mkdir(parents=True, exist_ok=True)
+    flight, truth, gap_end = (simulated if f["kind"] == "simulated" else photos)(f, folder)
+    db = Database(f["db"])
+    localizer = Localizer(db)
+    config = TrackConfig(filter=replace(FilterConfig(), speed_max_mps=f.get("speed_max", 60.0)))
+    rss = []
+
+    def on_point(p, n=[0]):  # noqa: B006 (a counter across calls)
+        n[0] += 1
+        if n[0] == 1:
+            rss.append(rss_mb())
+
+    t0 = time.perf_counter()
+    points = track_flight(localizer, flight, folder / "track.csv", config, on_point=on_point)
+    wall = time.perf_counter() - t0
+    rss.append(rss_mb())
+    s = score(points, truth, localizer.map.resolution_m, gap_end)
+    return {"name": f["name"], "score": s, "rss": rss, "wall": wall, "telemetry": bool(f.get("telemetry"))}
+
+
+def table(rows: list[dict]) -> str:
+    head = (
+        "| flight | frames | first fix: frame (s) | within t (t) | within 10 m | wrong | coasted (>3σ) | lost "
+        "| median err | frames/s tracking (overall) | recovery after gap | RSS MB start → end |"
+    )
+    lines = [head, "|" + "---|" * 12]
+    for r in rows:
+        s = r["score"]
+        rss = r["rss"]
+        lines.append(
+            f"| {r['name']} | {s.frames} | {s.first_fix_frame} ({s.first_fix_s:.1f} s) | {s.within_t:.3f} "
+            f"({s.t_m:.0f} m) | {s.within_10m:.3f} | {s.wrong} | {s.coasted} ({s.coasted_beyond_3sigma}) | "
+            f"{s.lost_after_first} | {s.median_error_m:.1f} m | {s.fps_tracking:.1f} ({s.fps_overall:.1f}) | "
+            f"{'-' if s.recovery_frames is None else s.recovery_frames} | "
+            f"{rss[0]:.0f} → {rss[-1]:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("experiments")
+    ap.add_argument("--only", help="run the flights whose name contains this")
+    args = ap.parse_args(argv)
+    conf = yaml.safe_load(Path(args.experiments).read_text())
+    out = Path(conf.get("out", "out/flights"))
+    rows = []
+    for f in conf["flights"]:
+        if args.only and args.only not in f["name"]:
+            continue
+        rows.append(run_one(f, out))
+        print(table(rows[-1:]).splitlines()[-1], flush=True)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -4,7 +4,7 @@ usage: nice python benchmarks/flights.py experiments/flights.yaml [--only NAME-S
 
 Simulated flights are written once into OUT/<name>/ (aeroloc.flight.simulate) and tracked without truth; the
 Toledo photo flights are the shared set's photos of one camera in EXIF time order, scored against their EXIF GPS
-(itself ±2-5 m). RSS is read from /proc at the first frame and the last (the memory run).
+(itself ±2-5 m). RSS is read from /proc at the first frame, a tenth into the flight (every model loaded) and at the end.
 """
 
 from __future__ import annotations
@@ -80,9 +80,11 @@ def run_one(f: dict, out: Path) -> dict:
     config = TrackConfig(filter=replace(FilterConfig(), speed_max_mps=f.get("speed_max", 60.0)))
     rss = []
 
+    tenth = max(2, len(flight.frames) // 10)
+
     def on_point(p, n=[0]):  # noqa: B006 (a counter across calls)
         n[0] += 1
-        if n[0] == 1:
+        if n[0] in (1, tenth):  # the first frame, and a tenth in (every model loaded by then)
             rss.append(rss_mb())
 
     t0 = time.perf_counter()
@@ -107,7 +109,7 @@ def table(rows: list[dict]) -> str:
             f"({s.t_m:.0f} m) | {s.within_10m:.3f} | {s.wrong} | {s.coasted} ({s.coasted_beyond_3sigma}) | "
             f"{s.lost_after_first} | {s.median_error_m:.1f} m | {s.fps_tracking:.1f} ({s.fps_overall:.1f}) | "
             f"{'-' if s.recovery_frames is None else s.recovery_frames} | "
-            f"{rss[0]:.0f} → {rss[-1]:.0f} |"
+            f"{' → '.join(f'{v:.0f}' for v in rss)} |"
         )
     return "\n".join(lines)
 

@@ -38,7 +38,7 @@ def track_flight(
     rows = csv.start()
     points = [TrackPoint.from_row(r) for r in rows]
     tracker = Tracker(localizer, config)
-    tracker.restore(points[-2:])
+    tracker.restore(points)
     try:
         for ref, image in flight.images(len(points)):
             if limit is not None and len(points) >= limit:

@@ -37,6 +37,10 @@ class TrackConfig:
     anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track
     anchor_spread_px: float = 2.0  # ... agreeing within max(10 m, this many map px)
     pipeline_every: int = 5  # while lost: the full single-image pipeline on every n-th frame (dense otherwise)
+    near_share: float = 0.5  # while lost: first search around the last fix, within this share of the speed
+    near_max_px: int = 1200  # bound x the time since it (working px of the largest such window)
+    near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
+    # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
 
 
 @dataclass
@@ -123,17 +127,22 @@ class Tracker:
 
     # --- resuming ---------------------------------------------------------------------------------------------
     def restore(self, points: list[TrackPoint]) -> None:
-        """Continue after ``points`` (a resumed run's finished rows): the last position, pose and velocity."""
+        """Continue after ``points`` (a resumed run's finished rows): the last position, pose and velocity, or,
+        when the track was lost there, the last fix's calibration for the re-localization."""
         if not points:
             return
         last = points[-1]
         self.prev_time = last.time
-        if not last.localized or not math.isfinite(last.gsd_m):
+        fixed = next((p for p in reversed(points) if p.localized and math.isfinite(p.gsd_m)), None)
+        if fixed is None:
+            return
+        col, row = self.map.latlon_to_pixel(fixed.lat, fixed.lon)
+        self.calibration = Pose(float(col), float(row), fixed.heading_deg, fixed.gsd_m / self.gsd)
+        self.cal_time = fixed.time
+        if fixed is not last:
             self.lost_since = last.time
             return
-        col, row = self.map.latlon_to_pixel(last.lat, last.lon)
-        self.pose = Pose(float(col), float(row), last.heading_deg, last.gsd_m / self.gsd)
-        self.calibration, self.cal_time = self.pose, last.time
+        self.pose = self.calibration
         self.filter.reset(float(col) * self.gsd, float(row) * self.gsd, last.sigma_m)
         prev = points[-2] if len(points) > 1 else None
         if prev is not None and prev.localized and last.time > prev.time:
@@ -258,14 +267,17 @@ class Tracker:
         )
 
     def _relocalize(self, ref: FrameRef, image, note: str = "") -> TrackPoint:
-        """A global fix from the whole map: with a ground resolution known (the frame's prior or the carried
-        calibration) the dense stage alone, cheap enough for every frame; the full single-image pipeline at the
-        start and on every ``pipeline_every``-th lost frame."""
+        """A fix without a prediction: first around the last fix (as far as the aircraft can have flown), then
+        the dense stage over the whole map when a ground resolution is known (the frame's prior or the carried
+        calibration), and the full single-image pipeline at the start and on every ``pipeline_every``-th lost
+        frame."""
         size = (image.shape[1], image.shape[0])
         priors = self._priors(ref, size[0])
         self.lost_frames += 1
         pose, status = None, "not localized"
-        if priors.gsd_m is not None and self.localizer.dense is not None:
+        if self.calibration is not None and self.cal_time is not None:
+            pose, status = self._near_last_fix(ref, image, priors)
+        if pose is None and priors.gsd_m is not None and self.localizer.dense is not None:
             pose, status = self._dense_global(image, priors)
         if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
             loc = self.localizer(ref.name, image, priors=priors)
@@ -278,6 +290,28 @@ class Tracker:
         self.rejected.clear()
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
+
+    def _near_last_fix(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
+        """The frame searched around the last fix: a window as far as the aircraft can have flown since then
+        (``near_share`` of the speed bound x the time), every heading the prior allows, the ground resolution
+        carried (or the frame's own)."""
+        cal = self.calibration
+        reach_m = self.cfg.near_share * self.cfg.filter.speed_max_mps * max(0.0, ref.time - self.cal_time)
+        scale = priors.gsd_m / self.gsd if priors.gsd_m is not None else cal.scale
+        pose = Pose(cal.x, cal.y, cal.turn_deg, scale)
+        angles = priors.heading_search() or (cal.turn_deg,)
+        fix = self.matcher(
+            image,
+            pose,
+            reach_m / 3 / self.gsd,
+            angles=angles,
+            max_px=self.cfg.near_max_px,
+            min_ratio=self.cfg.near_ratio,
+        )
+        if fix is None:
+            return None, f"not localized: nothing distinct within {reach_m:.0f} m of the last fix"
+        status = f"re-localized near the last fix (score {fix.score:.2f}, ratio {fix.ratio:.2f}, {reach_m:.0f} m)"
+        return Pose(fix.x, fix.y, fix.turn_deg, pose.scale), status
 
     def _dense_global(self, image, priors: Priors) -> tuple[Pose | None, str]:
         """The dense stage over the whole map (or the retrieved tiles' region when the map is too large) at the

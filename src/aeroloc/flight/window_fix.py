@@ -86,14 +86,24 @@ class WindowMatcher:
             return None
         return c0, r0, c1, r1
 
-    def __call__(self, image: np.ndarray, pose: Pose, sigma_px: float) -> WindowFix | None:
-        """The frame placed in the window around ``pose``; None when nothing distinct was found there."""
+    def __call__(
+        self,
+        image: np.ndarray,
+        pose: Pose,
+        sigma_px: float,
+        angles=None,
+        max_px: int | None = None,
+        min_ratio: float | None = None,
+    ) -> WindowFix | None:
+        """The frame placed in the window around ``pose``; None when nothing distinct was found there.
+        ``angles`` (default the pose's turn ± ``turn_span``), ``max_px`` and ``min_ratio`` widen the search for a
+        re-localization around the last position."""
         size = (image.shape[1], image.shape[0])
         box = self.window(pose, size, sigma_px)
         if box is None:
             return None
         f = self._levels(pose, size)
-        if max(box[2] - box[0], box[3] - box[1]) * f > self.cfg.max_window_px:
+        if max(box[2] - box[0], box[3] - box[1]) * f > (max_px or self.cfg.max_window_px):
             return None
         rgb, valid, ox, oy = self._read(*box, f)
         qk = pose.scale * f  # frame px -> working px
@@ -101,8 +111,10 @@ class WindowMatcher:
         region = DenseRegion(rgb, valid, self.conf)
         c = self.cfg
         t = pose.turn_deg
-        m = region.locate(query, angles=(t - c.turn_span, t, t + c.turn_span), scales=c.scales)
-        if m is None or m.score < c.min_score or (math.isfinite(m.ratio) and m.ratio < c.min_ratio):
+        angles = (t - c.turn_span, t, t + c.turn_span) if angles is None else angles
+        m = region.locate(query, angles=angles, scales=c.scales)
+        ratio = c.min_ratio if min_ratio is None else min_ratio
+        if m is None or m.score < c.min_score or (math.isfinite(m.ratio) and m.ratio < ratio):
             return None
         return WindowFix(
             ox + m.x / f, oy + m.y / f, m.angle, pose.scale * m.scale, m.score, m.ratio, (rgb.shape[1], rgb.shape[0])

@@ -33,6 +33,7 @@ class FilterConfig:
     max_rejects: int = 6  # fixes rejected (or failed) in a row before the track counts as lost
     lost_sigma_m: float = 150.0
     max_misses: int = 15  # windowed fixes failed in a row (no distinct match) before the track counts as lost
+    max_unfixed_s: float = 20.0  # ... or at least 2 failed and no fix for this long (photos seconds apart)
 
 
 @dataclass
@@ -50,15 +51,23 @@ class PositionFilter:
         self.est: Estimate | None = None
         self.rejects = 0
         self.misses = 0
+        self.unfixed_s = 0.0  # seconds since the last fused fix
 
     @property
     def lost(self) -> bool:
         e = self.est
         c = self.cfg
-        return e is None or e.sigma > c.lost_sigma_m or self.rejects >= c.max_rejects or self.misses >= c.max_misses
+        stale = self.misses >= 2 and self.unfixed_s > c.max_unfixed_s
+        return (
+            e is None
+            or e.sigma > c.lost_sigma_m
+            or self.rejects >= c.max_rejects
+            or self.misses >= c.max_misses
+            or stale
+        )
 
     def reset(self, x: float, y: float, sigma: float) -> None:
-        self.est, self.rejects, self.misses = Estimate(x, y, sigma), 0, 0
+        self.est, self.rejects, self.misses, self.unfixed_s = Estimate(x, y, sigma), 0, 0, 0.0
 
     def lose(self) -> None:
         self.est, self.rejects, self.misses = None, 0, 0
@@ -66,6 +75,7 @@ class PositionFilter:
     def predict_odometry(self, dx: float, dy: float, dt: float) -> None:
         """Move by an odometry step (metres); the step also refreshes the velocity."""
         e, c = self.est, self.cfg
+        self.unfixed_s += max(dt, 0.0)
         d = math.hypot(dx, dy)
         if dt > 0 and d > c.speed_max_mps * dt * 1.5:  # an impossible step: the pair matched wrongly
             self.predict_coast(dt)
@@ -77,6 +87,7 @@ class PositionFilter:
 
     def predict_coast(self, dt: float) -> None:
         e, c = self.est, self.cfg
+        self.unfixed_s += max(dt, 0.0)
         e.x, e.y = e.x + e.vx * dt, e.y + e.vy * dt
         e.sigma += c.coast_share * c.speed_max_mps * dt  # linear: an unseen turn is a drift, not a random walk
 
@@ -94,5 +105,5 @@ class PositionFilter:
         k = e.sigma**2 / (e.sigma**2 + sigma_fix**2)
         e.x, e.y = e.x + k * (x - e.x), e.y + k * (y - e.y)
         e.sigma = math.sqrt((1 - k) * e.sigma**2)
-        self.rejects = 0
+        self.rejects, self.unfixed_s = 0, 0.0
         return True, d

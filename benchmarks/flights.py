@@ -98,7 +98,7 @@ def run_one(f: dict, out: Path) -> dict:
 def table(rows: list[dict]) -> str:
     head = (
         "| flight | frames | first fix: frame (s) | within t (t) | within 10 m | wrong | coasted (>3σ) | lost "
-        "| median err | frames/s tracking (overall) | recovery after gap | RSS MB start → end |"
+        "| median err | frames/s tracking (overall) | recovery after gap | RSS MB: 1st frame → 10 % → end |"
     )
     lines = [head, "|" + "---|" * 12]
     for r in rows:

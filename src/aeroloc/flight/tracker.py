@@ -36,7 +36,8 @@ class TrackConfig:
     fix_every: int = 2  # while the uncertainty is below a fix's, a windowed fix on every n-th frame only
     anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track
     anchor_spread_px: float = 2.0  # ... agreeing within max(10 m, this many map px)
-    pipeline_every: int = 5  # while lost: the full single-image pipeline on every n-th frame (dense otherwise)
+    pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
+    dense_every: int = 3  # ... and the whole-map dense search on every n-th (the first lost frame included)
     near_share: float = 0.5  # while lost: first search around the last fix, within this share of the speed
     near_max_px: int = 1200  # bound x the time since it (working px of the largest such window)
     near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
@@ -269,15 +270,16 @@ class Tracker:
     def _relocalize(self, ref: FrameRef, image, note: str = "") -> TrackPoint:
         """A fix without a prediction: first around the last fix (as far as the aircraft can have flown), then
         the dense stage over the whole map when a ground resolution is known (the frame's prior or the carried
-        calibration), and the full single-image pipeline at the start and on every ``pipeline_every``-th lost
-        frame."""
+        calibration) on every ``dense_every``-th lost frame, and the full single-image pipeline at the start and on
+        every ``pipeline_every``-th lost frame (both cost seconds a frame: the frames between report lost at once)."""
         size = (image.shape[1], image.shape[0])
         priors = self._priors(ref, size[0])
         self.lost_frames += 1
         pose, status = None, "not localized"
         if self.calibration is not None and self.cal_time is not None:
             pose, status = self._near_last_fix(ref, image, priors)
-        if pose is None and priors.gsd_m is not None and self.localizer.dense is not None:
+        dense_due = (self.lost_frames - 1) % self.cfg.dense_every == 0
+        if pose is None and dense_due and priors.gsd_m is not None and self.localizer.dense is not None:
             pose, status = self._dense_global(image, priors)
         if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
             loc = self.localizer(ref.name, image, priors=priors)

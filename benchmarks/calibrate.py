@@ -71,7 +71,8 @@ def fit(rows: list[dict]) -> dict[str, StageModel]:
             z = w[0] + w[1] * x
             return float(np.sum(np.logaddexp(0, z) - y * z) + 0.5 * (w[0] ** 2 + w[1] ** 2) / 25.0)
 
-        a, b = minimize(loss, np.zeros(2), method="L-BFGS-B").x
+        # more inliers never mean less confidence: the slope is bounded at 0 (few misses can't fix its sign)
+        a, b = minimize(loss, np.zeros(2), method="L-BFGS-B", bounds=[(None, None), (0.0, None)]).x
         # sigma: error in map px scaled to 100 inliers; median radial error of a 2-D normal = 1.1774 sigma
         e100 = [r["error_m"] / r["gsd"] / math.sqrt(100.0 / max(1, r["inliers"])) for r in rs]
         models[s] = StageModel(

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from aeroloc.core import geo
+from aeroloc.core.images import valid_mask
 from aeroloc.localization.alignment import Alignment, align
 from aeroloc.localization.window import Window
 from aeroloc.maps.tiling import Tile, shifted
@@ -105,8 +106,22 @@ def confirm(
 ) -> tuple[SweepFix | None, int]:
     """Local features of the query turned to ``h``'s heading against the window ``h`` says it covers, described
     at the query's own scale; a :class:`SweepFix` when the alignment has ``min_inliers`` and lands within
-    ``reach_m`` of ``h``, else None; and the inliers found either way."""
-    up, mask = upright(image, h.angle)
+    ``reach_m`` of ``h``, else None; and the most inliers found.
+
+    Two turns are tried: the exact one, then (if it fails) the nearest quarter turn, which is lossless. On small
+    5 m/px NAIP crops the resampling of an exact turn left 3-6 inliers where the unresampled query, 14-36° off,
+    had 48-104; on levir-tx the exact turn is the stronger one."""
+    fix, n = _confirm_turned(reranker, map_, image, h, reach_m, min_inliers, upright(image, h.angle))
+    if fix is not None:
+        return fix, n
+    k = round(h.angle / 90.0) % 4
+    turned = np.ascontiguousarray(np.rot90(image, k))
+    fix2, n2 = _confirm_turned(reranker, map_, image, h, reach_m, min_inliers, (turned, valid_mask(turned)))
+    return fix2, max(n, n2)
+
+
+def _confirm_turned(reranker, map_, image, h: Hypothesis, reach_m: float, min_inliers: int, turned):
+    up, mask = turned
     size = (up.shape[1], up.shape[0])
     window = footprint_window(map_, h, size)
     if window is None:

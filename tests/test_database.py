@@ -87,45 +87,43 @@ def test_the_fitted_vocabulary_is_a_plain_state_dict(naip_db):
 
 
 def test_interrupted_descriptor_build_resumes_to_the_clean_result(naip_db, tmp_path, monkeypatch):
-    import aeroloc.retrieval.descriptors
+    from aeroloc.retrieval.global_shards import GlobalTask
 
     folder = tmp_path / "db"
     shutil.copytree(naip_db, folder, ignore=shutil.ignore_patterns("global", "local", "db.json"))
-    db = Database(folder)
-    real = aeroloc.retrieval.descriptors.iter_descriptors
-    seen = []
+    real, ran = GlobalTask.run, []
 
-    def dies_after_one_batch(model, paths, *a, **kw):
-        seen.append(len(paths))
-        for i, batch in enumerate(real(model, paths, *a, **kw)):
-            if i == 1:
-                raise KeyboardInterrupt("simulated Ctrl-C during the descriptor build")
-            yield batch
+    def dies_after_two_shards(self, model, shard, images, ids):
+        if len(ran) == 2:
+            raise KeyboardInterrupt("simulated Ctrl-C during the descriptor build")
+        ran.append(shard.index)
+        real(self, model, shard, images, ids)
 
-    monkeypatch.setattr(aeroloc.retrieval.descriptors, "iter_descriptors", dies_after_one_batch)
+    monkeypatch.setattr(GlobalTask, "run", dies_after_two_shards)
     with pytest.raises(KeyboardInterrupt):
-        build_global(db, METHOD, device="cpu", batch_size=8, progress=False)
+        build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False, shard_size=8)
     gdirs = list((folder / "global").iterdir())
     assert len(gdirs) == 1 and (gdirs[0] / "model.pt").is_file()
-    assert json.loads((gdirs[0] / "progress.json").read_text())["done"] == 8
+    assert sorted(p.name for p in (gdirs[0] / "shards").glob("*.done")) == ["00000.done", "00001.done"]
+    assert not list(gdirs[0].rglob("*.part"))
     with pytest.raises(AerolocError):  # the half-built method is not usable
         Database(folder).load_method(METHOD)
 
-    def counts(model, paths, *a, **kw):
-        seen.append(len(paths))
-        yield from real(model, paths, *a, **kw)
+    def counts(self, model, shard, images, ids):
+        ran.append(shard.index)
+        real(self, model, shard, images, ids)
 
-    monkeypatch.setattr(aeroloc.retrieval.descriptors, "iter_descriptors", counts)
-    rep = build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False)
-    assert seen == [35, 27]  # the resumed run described only the 27 tiles left
+    monkeypatch.setattr(GlobalTask, "run", counts)
+    rep = build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False, shard_size=8)
+    assert ran == [0, 1, 2, 3, 4]  # the resumed run built only the 3 shards left (35 tiles: 8, 8, 8, 8, 3)
     assert not rep.cached and rep.fit_s == 0.0  # the fitted vocabulary was reused, not refitted
-    resumed = np.load(gdirs[0] / "descriptors.npy")
-    # the reference: an uninterrupted build with the same batches (batch-size-dependent float noise can flip a
-    # hard VLAD assignment near a cluster boundary, so only equal batching makes equal descriptors)
+    resumed = (gdirs[0] / "descriptors.npy").read_bytes()
+    # the reference: an uninterrupted build; shards start on batch boundaries, so their batches are the same
+    # (batch-size-dependent float noise can flip a hard VLAD assignment near a cluster boundary)
     ref = tmp_path / "ref"
     shutil.copytree(naip_db, ref, ignore=shutil.ignore_patterns("global", "local", "db.json"))
     build_global(Database(ref), METHOD, device="cpu", batch_size=8, progress=False)
-    np.testing.assert_array_equal(resumed, np.load(_global_dir(ref) / "descriptors.npy"))
+    assert resumed == (_global_dir(ref) / "descriptors.npy").read_bytes()
     Database(folder).load_method(METHOD)  # complete now
 
 

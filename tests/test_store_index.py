@@ -222,13 +222,13 @@ def test_xfeat_tile_fits_200kb_and_stored_descriptors_match_like_float32(naip_ti
     """Real NAIP tile, default re-ranker's extractor: bytes on disk, and the screen's mutual NN after the round trip."""
     import cv2
 
-    from aeroloc.core.images import read_image
     from aeroloc.localization.cascade import mutual_nn
+    from aeroloc.retrieval.database import Database
     from aeroloc.matching.features import extract
     from aeroloc.matching.registry import build_reranker
 
     extractor, _ = build_reranker("xfeat-lighterglue", "cpu")
-    tile = read_image(naip_tiles_db / "images" / "r002c002.png")
+    tile = Database(naip_tiles_db).tile_image("r002c002")
     h, w = tile.shape[:2]
     moved = cv2.warpAffine(tile, cv2.getRotationMatrix2D((w / 2 + 18, h / 2 - 11), 25, 1.0), (w, h))
     a, b = extract(extractor, tile, 512), extract(extractor, moved, 512)
@@ -322,3 +322,39 @@ def test_local_store_key_follows_the_tile_features_not_the_reranking_settings():
     assert localfeatures.local_key(db, "xfeat-lighterglue", same) == key
     for other in ({"tile_side": 384}, {"extractor": {"max_keypoints": 1024}}):
         assert localfeatures.local_key(db, "xfeat-lighterglue", rerank_conf("xfeat-lighterglue", other)) != key
+
+
+def test_choose_factory_by_size():
+    from aeroloc.retrieval.index import choose_factory
+
+    assert choose_factory(35, 8192) == choose_factory(99_999, 8192) == "Flat"
+    assert choose_factory(10**6, 8192) == "PCA256,IVF4096,SQ8"
+    assert choose_factory(10**6, 128) == "IVF4096,SQ8"
+
+
+@pytest.mark.parametrize("factory", ["Flat", "IVF16,SQ8", "PCA32,IVF16,SQ8"])
+def test_index_filled_chunk_by_chunk_from_the_store_is_memory_mapped(tmp_path, factory):
+    """Built from the .npy store in chunks, read back mapped (flat vectors or on-disk IVF lists): same answers
+    as the same index built in memory; the exact one equals brute force."""
+    import faiss
+
+    from aeroloc.retrieval.index import build_index_from_store
+
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((3000, 64)).astype(np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    np.save(tmp_path / "d.npy", x.astype(np.float16))
+    used = build_index_from_store(tmp_path / "d.npy", tmp_path / "index.faiss", factory, nprobe=16, chunk=700)
+    assert used == factory
+    assert (tmp_path / "index.faiss.ivfdata").is_file() == ("IVF" in factory)
+    back = load_index(tmp_path / "index.faiss")
+    assert back.ntotal == 3000
+    q = x[:50]
+    _, got = search(back, q, 10)
+    ref = build_index(np.load(tmp_path / "d.npy").astype(np.float32), factory)
+    if "IVF" in factory:
+        faiss.extract_index_ivf(ref).nprobe = 16
+    _, want = search(ref, q, 10)
+    overlap = np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)])
+    assert overlap >= (1.0 if factory == "Flat" else 0.9), overlap
+    assert (got[:, 0] == np.arange(50)).mean() >= 0.9  # a stored vector finds itself first

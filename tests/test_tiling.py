@@ -1,6 +1,8 @@
 """tiling.py invariants over a grid of zooms x overlaps, on the real NAIP GeoTIFF and on a seed-format tile
 folder built from real pixels: full coverage, overlap step, edge snapping, tile count formula, exact corners;
-and the on-disk database: images equal the map, resume, cache hit, interrupted builds are completed."""
+and the on-disk database: images equal the map, resume, cache hit, interrupted builds are completed; tiles as
+windows: the same tiles.csv without images, windows cut from band reads equal to the map's own reads and to the
+PNGs, a changed map refused."""
 
 from __future__ import annotations
 
@@ -182,18 +184,18 @@ def _assert_database_matches_map(out, m, zoom, overlap):
 def test_write_tiles_renders_the_map_and_caches(tmp_path, seed):
     s, m = seed
     out = tmp_path / "db"
-    report = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
+    report = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False, write_images=True)
     assert not report.cached and report.n_tiles == len(TileGrid(m, 1.5, 0.5))
     _assert_database_matches_map(out, m, 1.5, 0.5)
     grid = load_info(out)["grid"]
     assert (grid["width_px"], grid["height_px"], grid["step_x_px"], grid["step_y_px"]) == (43, 32, 22, 16)
     assert report.tile_px == (43, 32) and report.step_px == (22, 16)
     mtimes = {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
-    again = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False)
+    again = write_tiles(s.path, out, zoom=1.5, overlap=0.5, progress=False, write_images=True)
     assert again.cached is True and again == replace(report, cached=True)
     assert {p: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == mtimes
     # another configuration in the same folder replaces the database instead of mixing them
-    write_tiles(s.path, out, zoom=2, overlap=0, progress=False)
+    write_tiles(s.path, out, zoom=2, overlap=0, progress=False, write_images=True)
     _assert_database_matches_map(out, m, 2, 0)
     assert len(list((out / "images").iterdir())) == len(TileGrid(m, 2, 0))
 
@@ -221,7 +223,7 @@ def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch)
     out = tmp_path / "db"
     real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
-        write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
+        write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False, write_images=True)
     monkeypatch.setattr(aeroloc.core.images, "write_image", real_write)
     assert not (out / "tiles.csv").exists()  # nothing looks complete
     assert len(list((out / "images").glob("*.png"))) == 5
@@ -229,7 +231,7 @@ def test_interrupted_build_is_completed_not_trusted(tmp_path, seed, monkeypatch)
     with pytest.raises(AerolocError, match=r"tiles\.csv"):
         load_tiles(out)
     kept = {p: p.stat().st_mtime_ns for p in (out / "images").glob("*.png")}
-    report = write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)
+    report = write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False, write_images=True)
     assert not report.cached
     _assert_database_matches_map(out, m, 1, 0.5)
     assert all(p.stat().st_mtime_ns == t for p, t in kept.items())  # resumed: finished tiles were kept
@@ -243,11 +245,11 @@ def test_interrupted_build_then_other_parameters(tmp_path, seed, monkeypatch):
     out = tmp_path / "db"
     real_write = crash_image_writes_after(5, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
-        write_tiles(s.path, out, zoom=1, overlap=0, progress=False)
+        write_tiles(s.path, out, zoom=1, overlap=0, progress=False, write_images=True)
     monkeypatch.setattr(aeroloc.core.images, "write_image", real_write)
-    write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False)  # same tile size, other windows
+    write_tiles(s.path, out, zoom=1, overlap=0.5, progress=False, write_images=True)  # same tile size, other windows
     _assert_database_matches_map(out, m, 1, 0.5)
-    write_tiles(s.path, out, zoom=2, overlap=0.5, progress=False)
+    write_tiles(s.path, out, zoom=2, overlap=0.5, progress=False, write_images=True)
     _assert_database_matches_map(out, m, 2, 0.5)
 
 
@@ -255,13 +257,67 @@ def test_write_tiles_on_naip(tmp_path, naip_map, naip):
     # zoom 2 -> 128 px tiles; overlap 0.25 -> step 96: 1 + ceil((934-128)/96) = 10 columns,
     # 1 + ceil((723-128)/96) = 8 rows, the last ones snapped to start at 934-128 = 806 and 723-128 = 595.
     out = tmp_path / "naip"
-    report = write_tiles(naip_map, out, zoom=2, overlap=0.25, progress=False)
+    report = write_tiles(naip_map, out, zoom=2, overlap=0.25, progress=False, write_images=True)
     assert report.n_tiles == 80 and (report.grid["n_cols"], report.grid["n_rows"]) == (10, 8)
     assert report.tile_px == (128, 128) and report.step_px == (96, 96)
     # tiles.json is the report (square grids keep the one-side keys)
     assert load_info(out) == report.to_json()
-    assert list(report.to_json()) == ["map", "grid", "n_tiles", "format", "build_s", "image_bytes"]
+    assert list(report.to_json()) == ["map", "grid", "n_tiles", "format", "images", "build_s", "image_bytes"]
     assert (report.grid["side_px"], report.grid["step_px"], report.grid["base_px"]) == (128, 96, 256.0)
     rows = _assert_database_matches_map(out, naip, 2, 0.25)
     assert (int(rows[-1]["col"]), int(rows[-1]["row"])) == (806, 595)
     assert rows[0]["crs"] == "EPSG:26914"
+
+
+# --- tiles as windows ----------------------------------------------------------------------------------------
+def test_windows_database_has_the_same_tiles_csv_and_no_images(tmp_path, naip_map):
+    from aeroloc.maps.tilesource import TileSource
+
+    png, win = tmp_path / "png", tmp_path / "win"
+    write_tiles(naip_map, png, zoom=2, overlap=0.5, progress=False, write_images=True)
+    report = write_tiles(naip_map, win, zoom=2, overlap=0.5, progress=False)
+    assert (win / "tiles.csv").read_bytes() == (png / "tiles.csv").read_bytes()  # same columns, same values
+    assert not (win / "images").exists() and report.images is False and report.image_bytes == 0
+    ref = load_info(win)["map"]
+    assert {"path", "width", "height", "crs", "transform", "content_sha1"} <= set(ref)
+    a, b = TileSource(png), TileSource(win)
+    assert a.has_images and not b.has_images
+    n = len(load_tiles(win))
+    for x, y in zip(a.images(0, n), b.images(0, n)):  # PNG round trip is lossless: equal pixels
+        np.testing.assert_array_equal(x, y)
+    assert write_tiles(naip_map, win, zoom=2, overlap=0.5, progress=False).cached
+
+
+@pytest.mark.parametrize("zoom,overlap", [(1.5, 0.5), (3, 0.75), (2, 0)])
+def test_band_reads_cut_the_same_pixels_as_window_reads(seed, zoom, overlap):
+    from aeroloc.maps.windows import read_windows
+
+    _, m = seed
+    tiles = list(TileGrid(m, zoom, overlap))
+    for s0, s1 in [(0, len(tiles)), (3, 11), (5, 6)]:  # whole grid, a run across rows, one tile
+        for t, got in zip(tiles[s0:s1], read_windows(m, tiles[s0:s1]), strict=True):
+            ref, _ = m.read(t.col, t.row, t.width, t.height)
+            np.testing.assert_array_equal(got, ref)
+
+
+def test_a_changed_map_is_refused(tmp_path, naip_map):
+    import shutil
+
+    import rasterio
+
+    from aeroloc.maps.tilesource import TileSource
+
+    m = tmp_path / "map.tif"
+    shutil.copy(naip_map, m)
+    write_tiles(m, tmp_path / "db", zoom=2, overlap=0, progress=False)
+    TileSource(tmp_path / "db").image(0)
+    with rasterio.open(m, "r+") as ds:  # same size, CRS and transform; other pixels
+        ds.write(255 - ds.read())
+    with pytest.raises(AerolocError, match="pixels changed since the tile grid was made"):
+        TileSource(tmp_path / "db").image(0)
+    shutil.copy(tmp_path / "db" / "tiles.json", tmp_path / "tiles.json")
+    info = load_info(tmp_path / "db")
+    info["map"]["width"] = 1000
+    (tmp_path / "db" / "tiles.json").write_text(__import__("json").dumps(info))
+    with pytest.raises(AerolocError, match=r"changed since the tile grid was made \(width 1000 -> 934\)"):
+        TileSource(tmp_path / "db").image(0)

@@ -34,10 +34,22 @@ def add_arguments(p):
     p.add_argument("--weights", help="explicit weights file for the method")
     add_trust_argument(p)
     p.add_argument("--local", help="also precompute local features of this re-ranker (e.g. xfeat-lighterglue)")
-    p.add_argument("--index", default="Flat", help="faiss factory string (default Flat; e.g. HNSW32, IVF1024,PQ32)")
+    p.add_argument(
+        "--index",
+        default="auto",
+        help="faiss factory string (default auto: Flat under 1e5 tiles, else PCA256,IVF<n>,SQ8; e.g. HNSW32)",
+    )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--workers", type=int, help="DataLoader workers (default: by size and CPU count)")
+    p.add_argument("--workers", type=int, help="Ray model actors (default: the cluster's CPUs)")
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="build the shards on a Ray cluster: HOST:PORT of 'ray start --head', auto, or nothing for a new "
+        "local one (needs aeroloc[ray]); the result is identical to the build without it",
+    )
     p.add_argument("--half", action="store_true", help="half precision on GPU")
 
 
@@ -53,11 +65,24 @@ def run(args) -> int:
         rerank_conf(args.local)
     trust_from_args(args)
     device = pick_device(args.device)
-    tiles_report = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m)
+    if args.ray is not None:
+        from aeroloc.retrieval.ray_build import connect
+
+        connect(args.ray)  # an address that does not answer fails now, in seconds
+    tiles_report = write_tiles(args.map, args.out, args.zoom, args.overlap, args.tile_m, write_images=args.write_images)
     print(summary(tiles_report, args.out))
     db = Database(args.out)
     rep = build_global(
-        db, args.method, None, args.weights, device, args.batch_size, args.workers, args.index, args.half
+        db,
+        args.method,
+        None,
+        args.weights,
+        device,
+        args.batch_size,
+        args.workers,
+        args.index,
+        args.half,
+        ray=args.ray,
     )
     if rep.cached:
         print(f"descriptors {args.method}: cached ({rep.dim}-d, {rep.bytes_per_tile / 1024:.1f} KB/tile)")
@@ -70,7 +95,7 @@ def run(args) -> int:
     if args.local:
         from aeroloc.matching.features import build_local
 
-        lrep = build_local(db, args.local, device)
+        lrep = build_local(db, args.local, device, ray=args.ray, workers=args.workers)
         print(
             f"local features {args.local}: {lrep.n_tiles} tiles, {lrep.bytes_per_tile / 1024:.1f} KB/tile"
             + (" (cached)" if lrep.cached else f", {lrep.tiles_per_s:.1f} tiles/s")

@@ -17,10 +17,14 @@ def build_database(
     rerank: str | None = DEFAULT_RERANKER,
     device="auto",
     progress: bool = False,
+    ray: str | None = None,
+    write_images: bool = False,
 ):
     """The database of ``map_path`` (GeoTIFF, tile folder or XYZ folder) in ``out_dir``: tiles at ``zoom`` /
     ``overlap`` (or ``tile_m`` metres a side), ``method`` descriptors, ``rerank`` features. Every part is cached
-    and resumable, so calling it again costs only the checks. Returns the opened
+    and resumable per shard, so calling it again costs only the checks; ``ray`` (an address, or ``"local"``)
+    builds the shards on a Ray cluster with the same result. Tiles stay windows of the map unless
+    ``write_images``. Returns the opened
     :class:`~aeroloc.retrieval.database.Database`."""
     from aeroloc.core.device import pick_device
     from aeroloc.maps.tiling import write_tiles
@@ -28,9 +32,9 @@ def build_database(
     from aeroloc.retrieval.database import Database, build_global
 
     device = pick_device(device)
-    write_tiles(map_path, out_dir, zoom, overlap, tile_m, progress=progress)
+    write_tiles(map_path, out_dir, zoom, overlap, tile_m, progress=progress, write_images=write_images)
     db = Database(out_dir)
-    build_global(db, method, device=device, progress=progress)
+    build_global(db, method, device=device, progress=progress, ray=ray)
     if rerank:
-        build_local(db, rerank, device, progress=progress)
+        build_local(db, rerank, device, progress=progress, ray=ray)
     return db

@@ -89,12 +89,10 @@ class Reranker:
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
-        from aeroloc.core.images import read_image
-
         missing = [t for t in tile_ids if t not in self._have]
         if missing:
             new = {
-                t: extract(self.extractor, read_image(self.db.folder / self.db.by_id[t].path), self.conf["tile_side"])
+                t: extract(self.extractor, self.db.tile_image(t), self.conf["tile_side"])
                 for t in missing
             }
             self.store.write_many(new)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.core.images import read_image, write_image
+from aeroloc.core.images import write_image
 from aeroloc.localization.results import Localization
 
 
@@ -50,7 +50,7 @@ def save_match_image(path: Path, image: np.ndarray, db, res: Localization) -> No
     import cv2
 
     c = res.best
-    tile = read_image(db.folder / db.by_id[c.tile_id].path)
+    tile = db.tile_image(c.tile_id)
     H0 = 480
     sq, st = H0 / image.shape[0], H0 / tile.shape[0]
     a = cv2.resize(image, (round(image.shape[1] * sq), H0))

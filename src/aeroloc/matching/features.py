@@ -9,16 +9,16 @@ Query rotations (multiples of 90°) let upright-only matchers handle photos take
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from aeroloc.core.frames import resize, resize_to_side
-from aeroloc.core.images import read_image, valid_mask
-from aeroloc.core.io import config_key
-from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore
+from aeroloc.core.images import valid_mask
+from aeroloc.core.io import config_key, write_json_atomic
+from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore, ShardedFeatureStore
+from aeroloc.retrieval.shards import SHARD_TILES, Shard, ShardJob, mark_complete, write_shard_file
 
 
 def _rot90_points(xy: np.ndarray, k: int, w: int, h: int) -> np.ndarray:
@@ -77,15 +77,57 @@ def local_key(db, name: str, conf: dict) -> str:
     )
 
 
-def store_for(db, name: str, conf: dict) -> FeatureStore:
+def store_for(db, name: str, conf: dict):
+    """The re-ranker's tile-feature store: sharded (what builds write), or the single features.h5 of a database
+    built before shards existed."""
     d = Path(db.folder) / "local" / f"{name}-{local_key(db, name, conf)}"
     d.mkdir(parents=True, exist_ok=True)
-    return FeatureStore(d / "features.h5")
+    if (d / "features.h5").is_file() and not (d / "shards").is_dir():
+        return FeatureStore(d / "features.h5")
+    return ShardedFeatureStore(d, [t.id for t in db.tiles], _shard_size(d))
+
+
+def _shard_size(folder: Path, default: int = SHARD_TILES) -> int:
+    """The shard size a store was built with (``shards.json``), else the default."""
+    import json
+
+    try:
+        return int(json.loads((folder / "shards.json").read_text())["shard_tiles"])
+    except (OSError, ValueError, KeyError):
+        return default
+
+
+@dataclass(frozen=True)
+class LocalTask:
+    """Extract a shard's tile features with re-ranker ``name`` into ``folder/shards/NNNNN.h5`` (a
+    :class:`~aeroloc.retrieval.shards.ShardTask`)."""
+
+    name: str
+    rconf: dict
+    folder: Path
+
+    def open(self):
+        from aeroloc.matching.registry import build_reranker, feature_overrides
+
+        extractor, _ = build_reranker(self.rconf["features"], "cpu", feature_overrides(self.rconf))
+        return extractor
+
+    def run(self, extractor, shard: Shard, images: list[np.ndarray], ids: list[str]) -> None:
+        feats = {t: extract(extractor, im, self.rconf["tile_side"]) for t, im in zip(ids, images)}
+        path = self.folder / "shards" / f"{shard.name}.h5"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_shard_file(path, lambda tmp: _write_h5(tmp, feats))
+        mark_complete(self.folder, shard)
+
+
+def _write_h5(tmp: Path, feats: dict) -> None:
+    tmp.unlink(missing_ok=True)  # h5py creates the file itself
+    FeatureStore(tmp).write_many(feats)
 
 
 @dataclass(frozen=True)
 class LocalBuildReport:
-    """What :func:`build_local` did: the store's file (``path``) and size; ``tiles_per_s`` is 0 on a cache hit."""
+    """What :func:`build_local` did: the store's folder (``path``) and size; ``tiles_per_s`` is 0 on a cache hit."""
 
     n_tiles: int
     cached: bool
@@ -94,33 +136,35 @@ class LocalBuildReport:
     tiles_per_s: float = 0.0
 
 
-def build_local(db, name: str, device="cpu", conf: dict | None = None, progress: bool = True) -> LocalBuildReport:
-    """Precompute the local features of every tile for re-ranker ``name`` (resumable: done tiles are kept)."""
-    from tqdm import tqdm
-
-    from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
+def build_local(
+    db,
+    name: str,
+    device="cpu",
+    conf: dict | None = None,
+    progress: bool = True,
+    ray: str | None = None,
+    workers: int | None = None,
+    shard_size: int = SHARD_TILES,
+) -> LocalBuildReport:
+    """Precompute the local features of every tile for re-ranker ``name``, shard by shard (resumable: finished
+    shards are kept), in this process or on the Ray cluster at ``ray``; the same shard code either way."""
+    from aeroloc.matching.registry import rerank_conf
+    from aeroloc.retrieval.database import run_shards
 
     rconf = rerank_conf(name, conf)
     store = store_for(db, name, rconf)
-    done = store.names()
-    todo = [t for t in db.tiles if t.id not in done]
-    if not todo:
+    if len(store.names()) >= len(db.tiles):
         return LocalBuildReport(len(db.tiles), cached=True, bytes_per_tile=store.bytes_per_item(), path=str(store.path))
-    extractor, _ = build_reranker(rconf["features"], device, feature_overrides(rconf))
-    t0 = time.perf_counter()
-    batch = {}
-    for t in tqdm(todo, desc=f"local features {name}", unit="tile", disable=not progress, leave=False):
-        batch[t.id] = extract(extractor, read_image(Path(db.folder) / t.path), rconf["tile_side"])
-        if len(batch) >= 32:
-            store.write_many(batch)
-            batch = {}
-    if batch:
-        store.write_many(batch)
-    dt = time.perf_counter() - t0
+    folder = store.path.parent if isinstance(store, FeatureStore) else store.folder  # an old unfinished store:
+    shard_size = _shard_size(folder, shard_size)  # continued as shards of the size it was started with
+    write_json_atomic(folder / "shards.json", {"shard_tiles": shard_size})
+    store = ShardedFeatureStore(folder, [t.id for t in db.tiles], shard_size)
+    job = ShardJob(str(db.folder), LocalTask(name, rconf, folder), shard_size)
+    n_new, dt = run_shards(db, job, f"local features {name}", progress, ray, workers)
     return LocalBuildReport(
         len(db.tiles),
         cached=False,
         bytes_per_tile=store.bytes_per_item(),
         path=str(store.path),
-        tiles_per_s=len(todo) / max(dt, 1e-9),
+        tiles_per_s=n_new / max(dt, 1e-9),
     )

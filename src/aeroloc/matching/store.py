@@ -92,7 +92,7 @@ class FeatureStore:
                 g = f.create_group(tmp)
                 for k, v in feats.items():
                     v, attrs = self.encode(k, v)
-                    ds = g.create_dataset(k, data=v)
+                    ds = g.create_dataset(k, data=v, track_times=False)  # no clock in the bytes
                     ds.attrs.update(attrs)
                 if name in f:
                     del f[name]
@@ -123,3 +123,76 @@ class FeatureStore:
         """Bytes on disk per stored tile: the whole file (HDF5 metadata, leftovers of interrupted writes) / tiles."""
         n = len(self.names())
         return self.path.stat().st_size / n if n else 0.0
+
+
+class ShardedFeatureStore:
+    """The local features of a sharded build: ``FOLDER/shards/NNNNN.h5`` (one :class:`FeatureStore` per shard of
+    ``shard_size`` tiles in tiles.csv order, complete once ``NNNNN.done`` exists) + ``extra.h5`` for tiles the
+    re-ranker extracted lazily. A query's candidates open only their own shards.
+
+    Same interface as :class:`FeatureStore` (``names``, ``write_many``, ``reader().get``, ``bytes_per_item``)."""
+
+    def __init__(self, folder, ids: list[str], shard_size: int):
+        self.folder = Path(folder)
+        self.ids, self.shard_size = ids, shard_size
+        self.position = {t: i for i, t in enumerate(ids)}
+        self.extra = FeatureStore(self.folder / "extra.h5")
+        self.path = self.folder
+
+    def shard_path(self, index: int) -> Path:
+        return self.folder / "shards" / f"{index:05d}.h5"
+
+    def _complete(self, index: int) -> bool:
+        return (self.folder / "shards" / f"{index:05d}.done").is_file()
+
+    def names(self) -> set[str]:
+        n_shards = -(-len(self.ids) // self.shard_size)
+        have = set(self.extra.names())
+        for k in range(n_shards):
+            if self._complete(k):
+                have.update(self.ids[k * self.shard_size : (k + 1) * self.shard_size])
+        return have
+
+    def write_many(self, items: dict[str, dict]) -> None:
+        self.extra.write_many(items)
+
+    def reader(self):
+        """Context manager yielding ``get(name)``: the tile's shard file (opened once per reader), else extra.h5."""
+        return _ShardedReader(self)
+
+    def bytes_per_item(self) -> float:
+        files = list((self.folder / "shards").glob("*.h5")) + [self.extra.path]
+        total = sum(p.stat().st_size for p in files if p.is_file())
+        n = len(self.names())
+        return total / n if n else 0.0
+
+
+class _ShardedReader:
+    def __init__(self, store: ShardedFeatureStore):
+        self.store, self.open = store, {}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for f in self.open.values():
+            f.close()
+
+    def _file(self, key, path: Path):
+        if key not in self.open:
+            self.open[key] = FeatureStore(path)._open("r")
+        return self.open[key]
+
+    def get(self, name: str) -> dict:
+        s = self.store
+        k = s.position.get(name, -1) // s.shard_size if name in s.position else -1
+        if k >= 0 and s._complete(k):
+            f = self._file(k, s.shard_path(k))
+        elif s.extra.path.is_file():
+            f = self._file("extra", s.extra.path)
+        else:
+            raise AerolocError(f"{s.folder}: no features for tile {name}")
+        if name not in f:
+            raise AerolocError(f"{s.folder}: no features for tile {name}")
+        g = f[name]
+        return {key: FeatureStore.decode(g[key]) for key in g}

@@ -3,14 +3,17 @@ index + per-reranker local features. Each part is cached under a key that hashes
 
 Layout::
 
-    DB/tiles.csv, tiles.json, images/        (aeroloc.maps.tiling)
-    DB/global/<method>-<key>/                model.pt (fitted state), descriptors.npy, meta.json, index.faiss
-    DB/local/<reranker>-<key>/features.h5    (aeroloc.matching.store.FeatureStore)
+    DB/tiles.csv, tiles.json [, images/]     (aeroloc.maps.tiling; pixels: aeroloc.maps.tilesource)
+    DB/global/<method>-<key>/                model.pt (fitted state), shards/NNNNN.npy + .done (the build's
+                                             shards, aeroloc.retrieval.shards), descriptors.npy, meta.json,
+                                             index.faiss [+ index.faiss.ivfdata]
+    DB/local/<reranker>-<key>/shards/NNNNN.h5 + .done   (aeroloc.matching.store; features.h5 in old databases)
     DB/db.json                               which method/reranker folders exist, the default method
 """
 
 from __future__ import annotations
 
+import io
 import json
 import time
 from dataclasses import dataclass
@@ -19,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.core.io import atomic_path, config_key, file_identity, write_json_atomic
+from aeroloc.core.io import atomic_write_bytes, config_key, file_identity, write_json_atomic
 from aeroloc.maps import tiling
+from aeroloc.retrieval.shards import SHARD_TILES
 from aeroloc.retrieval.store import DescriptorStore
 
 DB_JSON = "db.json"
@@ -42,12 +46,31 @@ class Database:
         self.by_id = {t.id: t for t in self.tiles}
         p = self.folder / DB_JSON
         self.meta = json.loads(p.read_text()) if p.is_file() else {"global": {}, "local": {}}
+        self.position = {t.id: i for i, t in enumerate(self.tiles)}
+        self._source = None
 
     def tiles_hash(self) -> str:
         return file_identity(self.folder / tiling.TILES_CSV)
 
     def tile_paths(self) -> list[Path]:
         return [self.folder / t.path for t in self.tiles]
+
+    @property
+    def source(self):
+        """The tiles' pixels (:class:`aeroloc.maps.tilesource.TileSource`): images/ if written, else the map."""
+        if self._source is None:
+            from aeroloc.maps.tilesource import TileSource
+
+            self._source = TileSource(self.folder, self.tiles, self.info)
+        return self._source
+
+    def tile_image(self, tile_id: str) -> np.ndarray:
+        """RGB uint8 of a tile: its window of the map (refused if the map changed), or its PNG when written."""
+        return self.source.image(self.position[tile_id])
+
+    def tile_images(self, start: int, stop: int):
+        """Tiles ``start`` .. ``stop`` - 1 (tiles.csv order), read in band windows of the map."""
+        return self.source.images(start, stop)
 
     def save_meta(self) -> None:
         write_json_atomic(self.folder / DB_JSON, self.meta)
@@ -110,15 +133,21 @@ def build_global(
     device="cpu",
     batch_size: int = 16,
     workers: int | None = None,
-    index_factory: str = "Flat",
+    index_factory: str = "auto",
     half: bool = False,
     fit_max_tiles: int = 2000,
     progress: bool = True,
+    ray: str | None = None,
+    shard_size: int = SHARD_TILES,
 ) -> GlobalBuildReport:
-    """Descriptors of every tile + a Faiss index, cached and resumable. Returns timings and sizes."""
-    import torch
+    """Descriptors of every tile + a Faiss index, cached and resumable per shard. Returns timings and sizes.
 
+    The shards run in this process, or on the Ray cluster at ``ray`` (``"local"``: a new local one) with
+    ``workers`` model actors; both run the same shard code on CPU, so the results are identical. ``device`` and
+    ``half`` are kept for the API; the shard build describes on CPU (batches of ``batch_size``)."""
+    from aeroloc.retrieval.global_shards import GlobalTask
     from aeroloc.retrieval.models import build_method
+    from aeroloc.retrieval.shards import ShardJob
 
     conf = dict(conf or {})
     key, gdir, entry = _global_entry(db, method, conf, weights, index_factory)
@@ -127,16 +156,13 @@ def build_global(
         return cached
     t_start = time.perf_counter()
     model = build_method(method, conf, weights, device="cpu")
-    dev = torch.device(device) if isinstance(device, str) else device
-    paths = db.tile_paths()
-    model, t_fit = _fit_vocabulary(model, gdir / "model.pt", paths, dev, fit_max_tiles)
-    model = model.to(dev).eval()
-    store = DescriptorStore(gdir, len(paths), model.dim, {"method": method, "conf": conf, "key": key})
-    n_new, t_desc = _fill_store(
-        store, model, paths, dev, batch_size, workers, half, f"descriptors {method}", progress, fit_s=t_fit
-    )
-    t_index = _build_index(store, gdir / "index.faiss", index_factory)
-    _register(db, method, entry)
+    model, t_fit = _fit_vocabulary(model, gdir / "model.pt", db, fit_max_tiles)
+    task = GlobalTask(method, conf, str(weights) if weights else None, gdir, batch_size)
+    job = ShardJob(str(db.folder), task, shard_size)
+    n_new, t_desc = run_shards(db, job, f"descriptors {method}", progress, ray, workers)
+    store = _merge_store(db, gdir, job, model.dim, {"method": method, "conf": conf, "key": key}, t_desc, t_fit)
+    t_index, used = _build_index(store, gdir / "index.faiss", index_factory)
+    _register(db, method, {**entry, "index_used": used})
     return _report(
         db,
         method,
@@ -150,6 +176,36 @@ def build_global(
         total_s=time.perf_counter() - t_start,
         tiles_per_s=n_new / max(t_desc, 1e-9),
     )
+
+
+def run_shards(db: Database, job, desc: str, progress: bool, ray: str | None, workers: int | None):
+    """Build the job's unfinished shards (in-process, or on Ray at ``ray``); (tiles built, seconds)."""
+    from aeroloc.retrieval.shards import run_in_process
+
+    todo = job.todo(len(db.tiles))
+    n_todo = sum(len(s) for s in todo)
+    bar = _progress(len(db.tiles), desc, progress, initial=len(db.tiles) - n_todo)
+    t0 = time.perf_counter()
+    if ray is not None:
+        from aeroloc.retrieval.ray_build import run_on_ray
+
+        run_on_ray(job, todo, ray, workers, progress=bar.update)
+    else:
+        run_in_process(job, todo, progress=bar.update)
+    bar.close()
+    return n_todo, time.perf_counter() - t0
+
+
+def _merge_store(db: Database, gdir: Path, job, dim: int, meta: dict, t_desc: float, t_fit: float):
+    """The complete shards concatenated into the method's DescriptorStore, marked complete."""
+    from aeroloc.retrieval.global_shards import merge
+
+    merge(gdir, job.shards(len(db.tiles)), len(db.tiles), dim)
+    store = DescriptorStore(gdir, len(db.tiles), dim, meta)
+    store.meta = {**meta, "extract_s": t_desc, "fit_s": t_fit, "n": store.n, "dim": dim, "dtype": "float16"}
+    store.meta["complete"] = True
+    write_json_atomic(gdir / "meta.json", store.meta)
+    return store
 
 
 def _global_entry(db: Database, method: str, conf: dict, weights, index_factory: str) -> tuple[str, Path, dict]:
@@ -215,12 +271,11 @@ def _load_fitted(path: Path) -> dict:
         ) from None
 
 
-def _fit_vocabulary(model, state_path: Path, paths: list[Path], dev, fit_max_tiles: int):
-    """(model, seconds): a model that needs fitting gets the saved state, or is fitted on up to ``fit_max_tiles``
-    tiles (a fixed random sample) and its state saved; other models are returned as they are."""
+def _fit_vocabulary(model, state_path: Path, db: Database, fit_max_tiles: int):
+    """(model, seconds): a model that needs fitting gets the saved state, or is fitted once, here, on up to
+    ``fit_max_tiles`` tiles (a fixed random sample, read as windows) and its state saved for every shard worker;
+    other models are returned as they are."""
     import torch
-
-    from aeroloc.core.images import read_image
 
     if not getattr(model, "needs_fit", False):
         return model, 0.0
@@ -229,42 +284,23 @@ def _fit_vocabulary(model, state_path: Path, paths: list[Path], dev, fit_max_til
         return model, 0.0
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
-    pick = sorted(rng.choice(len(paths), min(len(paths), fit_max_tiles), replace=False))
-    model = model.to(dev)
-    model.fit(read_image(paths[i]) for i in pick)
+    n = len(db.tiles)
+    pick = sorted(rng.choice(n, min(n, fit_max_tiles), replace=False))
+    model.fit(db.source.image(int(i)) for i in pick)
     state_path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(state_path) as tmp:
-        torch.save({k: v.cpu() for k, v in model.state_dict().items()}, tmp)
+    buf = io.BytesIO()  # torch names the archive after the file: a buffer keeps the bytes the same every build
+    torch.save({k: v.cpu() for k, v in model.state_dict().items()}, buf)
+    atomic_write_bytes(state_path, buf.getvalue())
     return model, time.perf_counter() - t0
 
 
-def _fill_store(
-    store: DescriptorStore, model, paths, dev, batch_size, workers, half, desc: str, progress: bool, fit_s: float
-) -> tuple[int, float]:
-    """Describe the tiles the store lacks (resuming after its last flushed row) and mark it complete.
-    Returns (tiles described, seconds)."""
-    from aeroloc.retrieval.descriptors import iter_descriptors
-
-    start, write, finish = store.writer()
-    t0 = time.perf_counter()
-    bar = _progress(len(paths), desc, progress, initial=start)
-    for batch in iter_descriptors(model, paths[start:], dev, batch_size, workers, half):
-        write(batch)
-        bar.update(len(batch))
-    bar.close()
-    t_desc = time.perf_counter() - t0
-    finish({"extract_s": t_desc, "fit_s": fit_s})
-    return len(paths) - start, t_desc
-
-
-def _build_index(store: DescriptorStore, path: Path, index_factory: str) -> float:
-    """Build and save the Faiss index over the complete store; returns the seconds it took."""
-    from aeroloc.retrieval.index import build_index, save_index
+def _build_index(store: DescriptorStore, path: Path, index_factory: str) -> tuple[float, str]:
+    """Build and save the Faiss index over the complete store, chunk by chunk; (seconds, factory used)."""
+    from aeroloc.retrieval.index import build_index_from_store
 
     t0 = time.perf_counter()
-    index = build_index(store.load(mmap=False).astype(np.float32), index_factory)
-    save_index(index, path)
-    return time.perf_counter() - t0
+    used = build_index_from_store(store.path, path, index_factory)
+    return time.perf_counter() - t0, used
 
 
 def _jsonable(conf: dict) -> dict:

@@ -31,13 +31,14 @@ SETS = {  # name: (map, queries, tile_m)
 }
 
 
-def run_set(name: str, mode: str, n: int, cache: Path) -> dict:
+def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
     from aeroloc import LocalizeOptions, Localizer, build_database, load_queries, read_image
     from aeroloc.bench.experiment import sample_queries
     from aeroloc.core import geo
 
     map_path, queries_path, tile_m = SETS[name]
-    db = build_database(map_path, cache / f"{map_path.parent.name}-{map_path.stem}-{tile_m}", tile_m=tile_m)
+    folder = dbs.get(str(map_path)) or cache / f"{map_path.parent.name}-{map_path.stem}-{tile_m}"
+    db = build_database(map_path, folder, tile_m=tile_m)
     loc = Localizer(db, LocalizeOptions())
     qs = sample_queries(load_queries(queries_path, priors=mode, seed=0), n)
     gsd = loc.map_gsd
@@ -74,7 +75,11 @@ def main() -> int:
     ap.add_argument("--sets", default=",".join(SETS))
     ap.add_argument("--modes", default="none,rough,exact")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
+    ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
     args = ap.parse_args()
+    from aeroloc.retrieval.database import Database
+
+    dbs = {Database(d).info["map"]["path"]: Path(d) for d in args.db}
     import torch
 
     torch.set_num_threads(1)
@@ -82,7 +87,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|")
     for name in args.sets.split(","):
         for mode in args.modes.split(","):
-            r = run_set(name, mode, args.n, args.cache)
+            r = run_set(name, mode, args.n, args.cache, dbs)
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items() if v >= 0.005)
             print(
                 f"| {r['set']} | {r['priors']} | {r['n']} | {r['within_t']:.2f} | {r['wrong']} | "

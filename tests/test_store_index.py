@@ -223,9 +223,9 @@ def test_xfeat_tile_fits_200kb_and_stored_descriptors_match_like_float32(naip_ti
     import cv2
 
     from aeroloc.localization.cascade import mutual_nn
-    from aeroloc.retrieval.database import Database
     from aeroloc.matching.features import extract
     from aeroloc.matching.registry import build_reranker
+    from aeroloc.retrieval.database import Database
 
     extractor, _ = build_reranker("xfeat-lighterglue", "cpu")
     tile = Database(naip_tiles_db).tile_image("r002c002")

@@ -8,7 +8,6 @@ usage: python benchmarks/calibrate.py RUNS/results.sqlite [...]   (e.g. the outp
 from __future__ import annotations
 
 import itertools
-import math
 import sqlite3
 import sys
 from collections import defaultdict
@@ -62,7 +61,7 @@ def fit(rows: list[dict]) -> dict[str, StageModel]:
     for s in SOURCES:
         rs = [r for r in rows if r["source"] == s]
         if not rs:
-            models[s] = StageModel(a=0.0, b=0.0, sigma_px=1.0)
+            models[s] = StageModel(a=0.0, b=0.0, sigma0_m=1.0, sigma_px=0.5)
             continue
         x = np.log(np.maximum(1, [r["inliers"] for r in rs]))
         y = np.array([r["error_m"] <= r["t_m"] for r in rs], float)
@@ -73,11 +72,17 @@ def fit(rows: list[dict]) -> dict[str, StageModel]:
 
         # more inliers never mean less confidence: the slope is bounded at 0 (few misses can't fix its sign)
         a, b = minimize(loss, np.zeros(2), method="L-BFGS-B", bounds=[(None, None), (0.0, None)]).x
-        # sigma: error in map px scaled to 100 inliers; median radial error of a 2-D normal = 1.1774 sigma
-        e100 = [r["error_m"] / r["gsd"] / math.sqrt(100.0 / max(1, r["inliers"])) for r in rs]
-        models[s] = StageModel(
-            a=round(float(a), 3), b=round(float(b), 3), sigma_px=round(float(np.median(e100)) / 1.1774, 3)
-        )
+        # sigma0 + sigma_px * gsd fitted to error / 1.1774 by least absolute deviation (a median fit): the median
+        # radial error of a 2-D normal is 1.1774 sigma
+        e = np.array([r["error_m"] for r in rs]) / 1.1774
+        g = np.array([r["gsd"] for r in rs])
+        s0, s1 = minimize(
+            lambda w, e=e, g=g: float(np.abs(e - w[0] - w[1] * g).sum()),
+            [1.0, 0.5],
+            method="Powell",
+            bounds=[(0.0, None), (0.0, None)],
+        ).x
+        models[s] = StageModel(round(float(a), 3), round(float(b), 3), round(float(s0), 3), round(float(s1), 3))
     return models
 
 

@@ -16,7 +16,10 @@ COMMANDS = {
     "build": ("build", "build a retrieval database: tiles + descriptors + index (+ local features)"),
     "retrieve": ("retrieve", "top-N tiles per query by global descriptor"),
     "localize": ("localize", "retrieve, re-rank and align: latitude/longitude per query"),
-    "track": ("track", "localize a whole flight (frames, photos or video): a filtered track, GeoJSON/KML/HTML, MAVLink"),
+    "track": (
+        "track",
+        "localize a whole flight (frames, photos or video): a filtered track, GeoJSON/KML/HTML, MAVLink",
+    ),
     "simulate-flight": ("simulate_flight", "fly a path over a real image and write frames + telemetry + truth"),
     "evaluate": ("evaluate", "score a results CSV: VPR Recall@N, Georeference Recall@d"),
     "bench": ("bench", "run an experiment file (sweeps, tables, plots, report)"),

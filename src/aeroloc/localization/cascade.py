@@ -91,10 +91,7 @@ class Reranker:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
         missing = [t for t in tile_ids if t not in self._have]
         if missing:
-            new = {
-                t: extract(self.extractor, self.db.tile_image(t), self.conf["tile_side"])
-                for t in missing
-            }
+            new = {t: extract(self.extractor, self.db.tile_image(t), self.conf["tile_side"]) for t in missing}
             self.store.write_many(new)
             self._have |= set(missing)
         with self.store.reader() as r:

@@ -30,7 +30,7 @@ def run(*args, cwd=None):
 def test_tiles_builds_a_database(tmp_path, naip_map):
     s = build_seed_folder(tmp_path / "seed", naip_map)
     out = tmp_path / "db"
-    p = run("tiles", s.path, "--zoom", "2", "--overlap", "0.5", "--out", out)
+    p = run("tiles", s.path, "--zoom", "2", "--overlap", "0.5", "--out", out, "--write-images")
     assert p.returncode == 0, p.stderr
     # the seed's raw tiles are 64 x 48 px, so zoom 2 cuts 32 x 24 px tiles (aero-vloc: raw size / zoom per axis),
     # step 16 x 12 on a 256 x 144 mosaic: 1 + ceil(224/16) = 15 columns, 1 + ceil(120/12) = 11 rows

@@ -66,11 +66,14 @@ def _assert_raw_tiles(s, db):
     """``db`` holds exactly the raw tiles: one per raw tile, same pixels, corners = map_metadata's."""
     rows = _read_csv(db / "tiles.csv")
     assert len(rows) == s.n_rows * s.n_cols
+    from aeroloc.retrieval.database import Database
+
+    database = Database(db)  # the pixels the pipeline reads: windows of the map (no PNGs by default)
     for i, row in enumerate(rows):
         r, c = divmod(i, s.n_cols)
         assert (int(row["width"]), int(row["height"])) == (RAW_W, RAW_H)
         assert (int(row["col"]), int(row["row"])) == (c * RAW_W, r * RAW_H)
-        got = np.asarray(Image.open(db / row["path"]).convert("RGB"))
+        got = database.tile_image(row["tile"])
         raw = np.asarray(Image.open(s.path / f"tile_{r}_{c}.png").convert("RGB"))
         np.testing.assert_array_equal(got, raw)
         # tiles.csv has 9 decimals: each corner is the metadata's, to that precision
@@ -170,8 +173,11 @@ def test_rectangular_database_on_disk(tmp_path, seed_2x1):
     assert json.loads((db / "tiles.json").read_text()) == report.to_json()
     rows = _read_csv(db / "tiles.csv")
     assert [(int(r["col"]), int(r["row"])) for r in rows][-2:] == [(1280, 410), (2560 - 853, 1230 - 820)]
+    from aeroloc.retrieval.database import Database
+
+    database = Database(db)
     for row, t in zip(rows, load_tiles(db)):
-        img = np.asarray(Image.open(db / row["path"]).convert("RGB"))
+        img = database.tile_image(row["tile"])
         assert img.shape == (820, 853, 3)
         np.testing.assert_array_equal(img, s.image[t.row : t.row + 820, t.col : t.col + 853])
         tl, br = s.pixel_to_latlon(t.col, t.row), s.pixel_to_latlon(t.col + 853, t.row + 820)

@@ -241,7 +241,9 @@ def _cached_build(db: Database, method: str, key: str, gdir: Path, entry: dict) 
     if not ((gdir / "meta.json").is_file() and (gdir / "index.faiss").is_file()):
         return None
     existing = DescriptorStore.open_complete(gdir)
-    _register(db, method, entry)
+    # the index the build chose is part of the entry: a cached build keeps it (results signatures read the entry)
+    used = db.meta.get("global", {}).get(method, {}).get("index_used")
+    _register(db, method, {**entry, **({"index_used": used} if used else {})})
     return _report(db, method, key, entry, existing, cached=True)
 
 

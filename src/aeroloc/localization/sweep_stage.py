@@ -111,16 +111,17 @@ def confirm(
     Two turns are tried: the exact one, then (if it fails) the nearest quarter turn, which is lossless. On small
     5 m/px NAIP crops the resampling of an exact turn left 3-6 inliers where the unresampled query, 14-36° off,
     had 48-104; on levir-tx the exact turn is the stronger one."""
-    fix, n = _confirm_turned(reranker, map_, image, h, reach_m, min_inliers, upright(image, h.angle))
+    fix, n = _confirm_turned(reranker, map_, h, reach_m, min_inliers, upright(image, h.angle))
     if fix is not None:
         return fix, n
     k = round(h.angle / 90.0) % 4
     turned = np.ascontiguousarray(np.rot90(image, k))
-    fix2, n2 = _confirm_turned(reranker, map_, image, h, reach_m, min_inliers, (turned, valid_mask(turned)))
+    fix2, n2 = _confirm_turned(reranker, map_, h, reach_m, min_inliers, (turned, valid_mask(turned)))
     return fix2, max(n, n2)
 
 
-def _confirm_turned(reranker, map_, image, h: Hypothesis, reach_m: float, min_inliers: int, turned):
+def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, min_inliers: int, turned):
+    """One confirmation of ``h`` with the query already turned: ``turned`` = (image, mask of its own pixels)."""
     up, mask = turned
     size = (up.shape[1], up.shape[0])
     window = footprint_window(map_, h, size)

@@ -266,10 +266,16 @@ def exif_camera(path: Path) -> tuple[int | None, int | None, dict[str, float], d
     return w, h, values, sources
 
 
-def _from_exif_folder(folder: Path, mode: str = "auto", seed: int = 0) -> list[Query]:
+def image_files(folder: Path, instead: str) -> list[Path]:
+    """The images of ``folder`` in name order; a one-line error naming what else was looked for when none."""
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
-        raise AerolocError(f"{folder}: no images (and no queries.csv / queries.txt)")
+        raise AerolocError(f"{folder}: no images (and no {instead})")
+    return files
+
+
+def _from_exif_folder(folder: Path, mode: str = "auto", seed: int = 0) -> list[Query]:
+    files = image_files(folder, "queries.csv / queries.txt")
     out = []
     for p in files:
         g = exif_gps(p)

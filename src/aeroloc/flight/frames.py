@@ -156,11 +156,9 @@ def exif_time(path: Path) -> float | None:
 
 
 def _photo_folder(folder: Path) -> Flight:
-    from aeroloc.core.queries import IMAGE_SUFFIXES, exif_camera, exif_gps
+    from aeroloc.core.queries import exif_camera, exif_gps, image_files
 
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise AerolocError(f"{folder}: no images (and no frames.csv)")
+    files = image_files(folder, "frames.csv")
     frames = []
     for p in files:
         t = exif_time(p)

@@ -358,3 +358,41 @@ def test_index_filled_chunk_by_chunk_from_the_store_is_memory_mapped(tmp_path, f
     overlap = np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)])
     assert overlap >= (1.0 if factory == "Flat" else 0.9), overlap
     assert (got[:, 0] == np.arange(50)).mean() >= 0.9  # a stored vector finds itself first
+
+
+def test_exact_index_streamed_to_disk_is_the_file_faiss_writes(tmp_path):
+    """The Flat index is written chunk by chunk without being held in RAM: the file has exactly the bytes faiss
+    writes for the same index built in memory, and reads back (memory-mapped) with the same answers."""
+    import faiss
+
+    from aeroloc.retrieval.index import build_index_from_store
+
+    x = unit_rows(1000, 48, seed=3).astype(np.float16)
+    np.save(tmp_path / "d.npy", x)
+    (tmp_path / "index.faiss.ivfdata").write_bytes(b"stale")  # an earlier IVF build's lists: removed
+    assert build_index_from_store(tmp_path / "d.npy", tmp_path / "index.faiss", "Flat", chunk=300) == "Flat"
+    want = faiss.serialize_index(build_index(x.astype(np.float32), "Flat")).tobytes()
+    assert (tmp_path / "index.faiss").read_bytes() == want
+    assert not (tmp_path / "index.faiss.ivfdata").exists()
+    _, ids = search(load_index(tmp_path / "index.faiss"), x[:20].astype(np.float32), 5)
+    assert (ids[:, 0] == np.arange(20)).all()
+
+
+def test_pca_fitted_by_randomized_svd_matches_faiss_pca():
+    """fit_pca (a randomized SVD on a sample, seconds at 8192-d) keeps the variance faiss's exact PCA keeps and
+    spans the same leading subspace, on descriptors with a decaying spectrum like real ones."""
+    import faiss
+
+    from aeroloc.retrieval.index import fit_pca
+
+    rng = np.random.default_rng(4)
+    x = (rng.standard_normal((2000, 256)) * (1.0 / np.arange(1, 257)) ** 0.7).astype(np.float32)
+    x = x @ np.linalg.qr(rng.standard_normal((256, 256)))[0].astype(np.float32)
+    ours, ref = faiss.PCAMatrix(256, 32), faiss.PCAMatrix(256, 32)
+    fit_pca(ours, x)
+    ref.train(x)
+    a, b = ours.apply(x), ref.apply(x)
+    assert np.sum(a**2) >= 0.99 * np.sum(b**2)  # variance kept
+    ua = faiss.vector_to_array(ours.A).reshape(32, 256)[:16]
+    ub = faiss.vector_to_array(ref.A).reshape(32, 256)[:16]
+    assert np.linalg.svd(ua @ ub.T, compute_uv=False).min() > 0.99  # the same 16 leading directions

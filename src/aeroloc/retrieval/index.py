@@ -14,6 +14,7 @@ index is read with ``IO_FLAG_MMAP``; the on-disk lists are mapped without it.)
 from __future__ import annotations
 
 import contextlib
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -97,7 +98,8 @@ def load_index(path):
 
 FLAT_MAX = 100_000  # exact search below this many tiles (16 KB/tile at 8192-d: 1.6 GB at the limit)
 PCA_DIM = 256
-TRAIN_MAX = 20_000  # training sample (8192-d float32: 655 MB at most)
+TRAIN_MAX = 20_000  # training sample of an index without PCA (8192-d float32: 655 MB at most)
+PCA_TRAIN_MAX = 4_000  # rows the PCA is fitted on (4000 x 8192 float32: 131 MB)
 
 
 def choose_factory(n: int, dim: int) -> str:
@@ -122,20 +124,84 @@ def _sample_rows(npy: Path, n_pick: int) -> np.ndarray:
 
 
 def _train(index, npy: Path, n: int) -> None:
-    """Train on a fixed sample of at most ``TRAIN_MAX`` rows (a PCA chain trains its transform, then the IVF)."""
+    """Train on fixed samples of the store. A ``PCA…`` chain fits its transform on at most ``PCA_TRAIN_MAX``
+    rows with a randomized SVD (:func:`fit_pca`: faiss's own PCA on 8192-d descriptors took > 10 min) and the
+    index after it on at most ``TRAIN_MAX`` rows already reduced; other indexes train on ``TRAIN_MAX`` rows."""
+    import faiss
+
     if n < 40:
         raise AerolocError(f"faiss index needs training data; {n} descriptors is too few (use Flat)")
     _skip_polysemous_training(index)
-    x = _sample_rows(npy, TRAIN_MAX)
+    pca = _pca_or_none(index)
+    if pca is None:
+        _train_on(index, _sample_rows(npy, TRAIN_MAX))
+        return
+    fit_pca(pca, _sample_rows(npy, PCA_TRAIN_MAX))
+    sub = faiss.downcast_index(index).index
+    _train_on(sub, _reduced_sample(pca, npy, TRAIN_MAX))
+    index.is_trained = True
+
+
+def _train_on(index, x: np.ndarray) -> None:
     try:
         index.train(x)
     except RuntimeError as exc:
         raise AerolocError(f"faiss index training failed on {len(x)} descriptors: {str(exc).splitlines()[0]}") from None
-    del x
+
+
+def _pca_or_none(index):
+    """The PCA of a ``PCA…,<index>`` factory (a pre-transform chain of exactly one PCA), else None."""
+    import faiss
+
+    index = faiss.downcast_index(index)
+    if not isinstance(index, faiss.IndexPreTransform) or index.chain.size() != 1:
+        return None
+    vt = faiss.downcast_VectorTransform(index.chain.at(0))
+    return vt if isinstance(vt, faiss.PCAMatrix) else None
+
+
+def _reduced_sample(pca, npy: Path, n_pick: int, chunk: int = 2048) -> np.ndarray:
+    """The fixed training sample of ``n_pick`` rows, PCA-reduced chunk by chunk (never all of it at full dim)."""
+    mm = np.load(npy, mmap_mode="r")
+    pick = np.sort(np.random.default_rng(0).choice(mm.shape[0], min(n_pick, mm.shape[0]), replace=False))
+    parts = [
+        pca.apply(np.ascontiguousarray(mm[pick[s : s + chunk]], dtype=np.float32)) for s in range(0, len(pick), chunk)
+    ]
+    return np.ascontiguousarray(np.concatenate(parts), dtype=np.float32)
+
+
+def fit_pca(pca, x: np.ndarray, iters: int = 2, oversample: int = 64) -> None:
+    """Fit faiss ``PCAMatrix`` ``pca`` on the rows ``x`` with a randomized SVD (Halko et al.: a random range of
+    ``d_out + oversample`` columns refined by ``iters`` power iterations, fixed seed): seconds on 4000 x 8192
+    where faiss's eigendecomposition of the 8192 x 8192 covariance takes many minutes; the leading components
+    are the same to < 1 % in variance. Sets the mean, components and variances, then faiss's own ``A``, ``b``."""
+    import faiss
+
+    n, d = x.shape
+    k = pca.d_out
+    if n < k:
+        raise AerolocError(f"PCA to {k}-d needs at least {k} training descriptors, got {n}")
+    mean = x.mean(0, dtype=np.float64).astype(np.float32)
+    c = x - mean
+    width = min(k + oversample, n, d)
+    q, _ = np.linalg.qr(c.T @ np.random.default_rng(0).standard_normal((n, width)).astype(np.float32))
+    for _ in range(iters):
+        z, _ = np.linalg.qr(c @ q)
+        q, _ = np.linalg.qr(c.T @ z)
+    _, sv, vt = np.linalg.svd(c @ q, full_matrices=False)
+    comps = np.ascontiguousarray((vt @ q.T)[:k], dtype=np.float32)
+    faiss.copy_array_to_vector(mean, pca.mean)
+    faiss.copy_array_to_vector((sv[:k] ** 2 / max(n - 1, 1)).astype(np.float32), pca.eigenvalues)
+    faiss.copy_array_to_vector(comps.ravel(), pca.PCAMat)
+    pca.is_trained = True
+    pca.prepare_Ab()
 
 
 def build_index_from_store(npy, path, factory: str = "auto", nprobe: int = 32, chunk: int = 4096) -> str:
-    """Build the index of the ``.npy`` store ``npy`` into ``path`` chunk by chunk; returns the factory used."""
+    """Build the index of the ``.npy`` store ``npy`` into ``path`` chunk by chunk; returns the factory used.
+
+    ``Flat`` is streamed to the file (:func:`_write_flat`) rather than filled in RAM: the exact index of 10^5
+    8192-d tiles is 3.3 GB of float32, and holding it made the build's peak RSS grow with the map."""
     import faiss
 
     from aeroloc.retrieval.shards import iter_rows
@@ -147,10 +213,13 @@ def build_index_from_store(npy, path, factory: str = "auto", nprobe: int = 32, c
         index = faiss.index_factory(d, factory, faiss.METRIC_INNER_PRODUCT)
     except RuntimeError as exc:
         raise AerolocError(f"faiss index '{factory}' cannot be built for dim {d}: {str(exc).splitlines()[0]}") from None
+    _ivfdata(path).unlink(missing_ok=True)
+    if type(faiss.downcast_index(index)) is faiss.IndexFlatIP:
+        _write_flat(npy, path, n, d, chunk)
+        return factory
     if not index.is_trained:
         _train(index, npy, n)
     ivf = _ivf_or_none(index)
-    _ivfdata(path).unlink(missing_ok=True)
     if ivf is not None:
         lists = faiss.OnDiskInvertedLists(ivf.nlist, ivf.code_size, str(_ivfdata(path).resolve()))
         ivf.replace_invlists(lists, True)
@@ -160,6 +229,23 @@ def build_index_from_store(npy, path, factory: str = "auto", nprobe: int = 32, c
         index.add(np.ascontiguousarray(rows, dtype=np.float32))
     save_index(index, path)
     return factory
+
+
+def _write_flat(npy: Path, path: Path, n: int, d: int, chunk: int) -> None:
+    """Write an exact inner-product index of the store's rows in faiss's own file format (the same bytes as
+    ``faiss.write_index`` of an ``IndexFlatIP`` filled with them; a test compares), chunk by chunk, so RAM holds
+    one chunk, not the index. Written to ``.part`` and renamed, so a full disk leaves no half index."""
+    from aeroloc.retrieval.shards import iter_rows
+
+    # fourcc, d (int32), ntotal, two unused idx_t (1 << 20), is_trained (bool), metric (int32: 0 = inner
+    # product), then the vectors as a size_t count of floats and the floats
+    header = b"IxFI" + struct.pack("<iqqq?iQ", d, n, 1 << 20, 1 << 20, True, 0, n * d)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as f:
+        f.write(header)
+        for rows in iter_rows(npy, chunk):
+            f.write(np.ascontiguousarray(rows, dtype="<f4").tobytes())
+    tmp.replace(path)
 
 
 def _ivf_or_none(index):

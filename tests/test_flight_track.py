@@ -68,6 +68,31 @@ def test_simulated_flight_overlaps_turns_and_loses_frames(flight):
     assert all(m.contains_latlon(float(r["lat"]), float(r["lon"])) for r in truth)
 
 
+def test_coasting_follows_the_turn_the_frames_showed(flight):
+    """Black frames in a turn: the filter coasts on along the arc the last steps turned on (the frames' rotation),
+    not straight on; checked against the simulated flight's true path, which turns at 6°/s throughout."""
+    from aeroloc.flight.filter import PositionFilter
+
+    folder, _, m = flight
+    rows = list(_truth(folder).values())[:20]
+    g = m.resolution_m
+    xy = [tuple(float(v) * g for v in m.latlon_to_pixel(float(r["lat"]), float(r["lon"]))) for r in rows]
+    turns = [float(r["heading_deg"]) for r in rows]
+    ends = {}
+    for use_turn in (True, False):
+        f = PositionFilter()
+        f.reset(*xy[0], 5.0)
+        for i in range(1, 8):  # 7 odometry steps (truth here: the filter's motion model is what is tested)
+            dt = float(rows[i]["time"]) - float(rows[i - 1]["time"])
+            dturn = (turns[i] - turns[i - 1] + 180) % 360 - 180 if use_turn else 0.0
+            f.predict_odometry(xy[i][0] - xy[i - 1][0], xy[i][1] - xy[i - 1][1], dt, dturn)
+        for i in range(8, 20):  # then 12 frames (6 s, 36° of turn) without images
+            f.predict_coast(float(rows[i]["time"]) - float(rows[i - 1]["time"]))
+        ends[use_turn] = math.hypot(f.est.x - xy[19][0], f.est.y - xy[19][1])
+    assert abs(turns[19] - turns[7]) > 30  # the path did turn meanwhile
+    assert ends[True] < 10.0 < ends[False]  # the arc: within 10 m after 6 s; straight on: farther
+
+
 def test_track_is_accurate_after_the_first_fix_and_recovers_after_the_gap(flight, tracked):
     folder, plan, m = flight
     points, out, _, _ = tracked

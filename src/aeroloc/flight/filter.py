@@ -8,8 +8,9 @@ as a particle filter at a fraction of the cost (two numbers per frame, not thous
 camera have no preferred direction.
 
 Motion: the odometry step when there is one (its error grows with the distance moved), else the last velocity
-over the time step, with an uncertainty growing at a share of the speed bound (the aircraft may have turned or
-changed speed). A fix is used only when it falls within the gate (``gate_sigmas`` of the combined uncertainty, at
+over the time step, turned at the last turn rate (the frames' rotation: a camera fixed to an airframe that flies
+where it points; a turn does not stop when the camera goes black), with an uncertainty growing at a share of the
+speed bound (the aircraft may have changed its turn or speed). A fix is used only when it falls within the gate (``gate_sigmas`` of the combined uncertainty, at
 least ``gate_floor_m``): one bad fix can't drag the track. Too many rejected (or failed) fixes in a row, or an uncertainty
 beyond ``lost_sigma_m``, and the track is lost: the tracker re-localizes globally.
 """
@@ -43,6 +44,7 @@ class Estimate:
     sigma: float  # metres, 1 sigma
     vx: float = 0.0  # m/s
     vy: float = 0.0
+    turn_dps: float = 0.0  # the velocity's turn rate, degrees/s, positive from east towards south (map rows)
 
 
 class PositionFilter:
@@ -72,8 +74,9 @@ class PositionFilter:
     def lose(self) -> None:
         self.est, self.rejects, self.misses = None, 0, 0
 
-    def predict_odometry(self, dx: float, dy: float, dt: float) -> None:
-        """Move by an odometry step (metres); the step also refreshes the velocity."""
+    def predict_odometry(self, dx: float, dy: float, dt: float, turn_deg: float = 0.0) -> None:
+        """Move by an odometry step (metres) in which the frame turned by ``turn_deg`` (the content's turn, the
+        project's convention: the opposite of the aircraft's); the step also refreshes velocity and turn rate."""
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
         d = math.hypot(dx, dy)
@@ -82,13 +85,21 @@ class PositionFilter:
             return
         e.x, e.y = e.x + dx, e.y + dy
         e.sigma = math.hypot(e.sigma, c.vo_rel * d + c.vo_abs_m)
-        if dt > 0:
-            e.vx, e.vy = 0.5 * e.vx + 0.5 * dx / dt, 0.5 * e.vy + 0.5 * dy / dt
+        if dt > 0:  # the old velocity turned with the aircraft, the step's chord by half its turn (an arc's end)
+            a = -math.radians(turn_deg)
+            ox, oy = _turned(e.vx, e.vy, a)
+            nx, ny = _turned(dx / dt, dy / dt, a / 2)
+            e.vx, e.vy = 0.5 * ox + 0.5 * nx, 0.5 * oy + 0.5 * ny
+            e.turn_dps = 0.5 * e.turn_dps - 0.5 * turn_deg / dt
 
     def predict_coast(self, dt: float) -> None:
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
-        e.x, e.y = e.x + e.vx * dt, e.y + e.vy * dt
+        a = math.radians(e.turn_dps * dt)
+        cx, cy = _turned(e.vx, e.vy, a / 2)  # along the arc: the chord is the velocity turned by half the arc
+        chord = math.sin(a / 2) / (a / 2) if abs(a) > 1e-9 else 1.0
+        e.x, e.y = e.x + cx * dt * chord, e.y + cy * dt * chord
+        e.vx, e.vy = _turned(e.vx, e.vy, a)
         e.sigma += c.coast_share * c.speed_max_mps * dt  # linear: an unseen turn is a drift, not a random walk
 
     def gate(self, sigma_fix: float) -> float:
@@ -107,3 +118,8 @@ class PositionFilter:
         e.sigma = math.sqrt((1 - k) * e.sigma**2)
         self.rejects, self.unfixed_s = 0, 0.0
         return True, d
+
+
+def _turned(x: float, y: float, a: float) -> tuple[float, float]:
+    """(x, y) turned by ``a`` radians from east towards south (the map's pixel axes)."""
+    return x * math.cos(a) - y * math.sin(a), x * math.sin(a) + y * math.cos(a)

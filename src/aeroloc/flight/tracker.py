@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from aeroloc.core.priors import Priors
 from aeroloc.flight.calibration import Pose, pose_from_dense, pose_from_homography
-from aeroloc.flight.filter import FilterConfig, PositionFilter
+from aeroloc.flight.filter import Estimate, FilterConfig, PositionFilter
 from aeroloc.flight.frames import FrameRef
 from aeroloc.flight.odometry import Odometry
 from aeroloc.flight.window_fix import WindowConfig, WindowMatcher
@@ -36,10 +36,19 @@ class TrackConfig:
     fix_every: int = 2  # while the uncertainty is below a fix's, a windowed fix on every n-th frame only
     anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track
     anchor_spread_px: float = 2.0  # ... agreeing within max(10 m, this many map px)
+    anchor_score: float = 0.3  # ... each scoring at least this (NAIP: fixes under 0.3 were 10-45 m off, median 18 m,
+    # and three of them, 95 % overlapping frames over the same changed lake shore, 'agreed' on a place 45 m off)
+    fix_score_ref: float = 0.4  # a windowed fix's sigma is the filter's fix sigma x (this / score)^fix_score_pow,
+    fix_score_pow: float = 3.0  # never less: NAIP fixes at 0.45+ were 3 m off (median), at 0.30-0.35 5-18 m
     pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
     dense_every: int = 3  # ... and the whole-map dense search on every n-th (the first lost frame included)
-    near_share: float = 0.5  # while lost: first search around the last fix, within this share of the speed
-    near_max_px: int = 1200  # bound x the time since it (working px of the largest such window)
+    near_share: float = 0.5  # while lost: first search around the last estimate carried on at its velocity, as
+    # far as this share of the speed bound x the time since (the coasting model), or the whole bound around the
+    # last fix when no velocity is known (a resumed run)
+    near_min_m: float = 100.0  # ... at least this far (a track lost to rejected fixes was off by tens of metres)
+    near_max_px: int = 1200  # working px of the largest such window (beyond: the whole-map search)
+    near_inner: float = 0.5  # a peak not distinct over the whole reach is taken when it is distinct within this
+    # share of it and is the whole reach's best too: its rivals are all farther from the prediction (less likely)
     near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
     # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
 
@@ -125,6 +134,7 @@ class Tracker:
         self.frames_since_fix = 0
         self.lost_frames = 0
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
+        self.dead: tuple[Estimate, float] | None = None  # the filter's estimate when the track was lost, and when
 
     # --- resuming ---------------------------------------------------------------------------------------------
     def restore(self, points: list[TrackPoint]) -> None:
@@ -176,13 +186,14 @@ class Tracker:
         if step is not None:
             new = self.pose.moved(step.A, size)
             before = (self.filter.est.x, self.filter.est.y)
-            self.filter.predict_odometry((new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd, dt)
+            turn = (new.turn_deg - self.pose.turn_deg + 180.0) % 360.0 - 180.0
+            self.filter.predict_odometry((new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd, dt, turn)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
             self.pose = new if moved else self.pose
         if not moved:
             self.filter.predict_coast(dt)
         e = self.filter.est
-        self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, self.pose.scale)
+        self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, self._frame_scale(ref, size))
         reason = "undecodable frame" if image is None else "blank frame" if blank else ""
         source = "tracked" if moved else "coasted"
         self.frames_since_fix += 1
@@ -192,12 +203,22 @@ class Tracker:
             source = "tracked" if (moved or fixed) else "coasted"
             reason = status
         if self.filter.lost:
+            self.dead = (replace(self.filter.est), ref.time)
             self.filter.lose()
             self.pose, self.lost_since = None, ref.time
             if not blank:
                 return self._relocalize(ref, image, f"track lost ({reason}); ")
             return self._point(ref, "lost", f"track lost ({reason})")
         return self._point(ref, source, reason or ("odometry" if moved else "coasting"))
+
+    def _frame_scale(self, ref: FrameRef, size) -> float:
+        """The pose's scale: the frame's own ground resolution when its metadata gives one (a barometric height
+        and the lens: no drift), else the one the odometry carried (its scale changes compose, and drift)."""
+        if size is not None and ref.priors.known:
+            gsd = ref.priors.with_image_width(size[0]).gsd_m
+            if gsd is not None and gsd > 0:
+                return gsd / self.gsd
+        return self.pose.scale
 
     def _window_fix(self, image, size) -> tuple[str, bool]:
         """Match the frame around the prediction and gate the fix; (status, whether a fix was fused)."""
@@ -209,13 +230,13 @@ class Tracker:
             self.filter.misses += 1
             return "odometry (no distinct match in the window)", False
         self.filter.misses = 0
-        sigma_fix = max(self.cfg.filter.fix_sigma_m, self.gsd)
+        sigma_fix = self._fix_sigma(fix.score)
         e = self.filter.est
         offset = (fix.x * self.gsd - e.x, fix.y * self.gsd - e.y)
         ok, d = self.filter.update(fix.x * self.gsd, fix.y * self.gsd, sigma_fix)
         if not ok:
             status = f"fix rejected: {d:.0f} m from the prediction (gate {self.filter.gate(sigma_fix):.0f} m)"
-            if not self._reanchor(offset, fix, sigma_fix):
+            if fix.score < self.cfg.anchor_score or not self._reanchor(offset, fix, sigma_fix):
                 return status, False
             status = f"re-anchored: {self.cfg.anchor_after} rejected fixes agreed ({d:.0f} m from the prediction)"
         else:
@@ -228,6 +249,12 @@ class Tracker:
         self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, fix.turn_deg, None, k=0.1)
         self.calibration, self.cal_time = self.pose, self.prev_time
         return status, True
+
+    def _fix_sigma(self, score: float) -> float:
+        """A windowed fix's error (metres, 1 sigma) from its own correlation score: weak peaks are the ones that
+        sat on changed ground, so they pull the track less."""
+        base = max(self.cfg.filter.fix_sigma_m, self.gsd)
+        return base * max(1.0, (self.cfg.fix_score_ref / max(score, 1e-3)) ** self.cfg.fix_score_pow)
 
     def _reanchor(self, offset: tuple[float, float], fix, sigma_fix: float) -> bool:
         """Rejected fixes that keep the same offset from the prediction are the odometry drifting, not the fixes
@@ -288,31 +315,50 @@ class Tracker:
         if pose is None:
             return self._point(ref, "lost", note + status)
         self.pose = self.calibration = pose
-        self.lost_since, self.lost_frames, self.cal_time = None, 0, ref.time
+        self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
         self.rejected.clear()
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
 
-    def _near_last_fix(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
-        """The frame searched around the last fix: a window as far as the aircraft can have flown since then
-        (``near_share`` of the speed bound x the time), every heading the prior allows, the ground resolution
-        carried (or the frame's own)."""
+    def _near_prediction(self, t: float) -> tuple[float, float, float]:
+        """(x, y, reach) metres: where the aircraft can be at ``t`` since the track was lost, the last estimate
+        carried on at its velocity within the coasting model's uncertainty; without one (a resumed run) the last
+        fix within the whole speed bound."""
+        f = self.cfg.filter
+        if self.dead is not None:
+            e, t0 = self.dead
+            dt = max(0.0, t - t0)
+            reach = max(e.sigma, self.cfg.near_min_m) + self.cfg.near_share * f.speed_max_mps * dt
+            return e.x + e.vx * dt, e.y + e.vy * dt, reach
         cal = self.calibration
-        reach_m = self.cfg.near_share * self.cfg.filter.speed_max_mps * max(0.0, ref.time - self.cal_time)
+        reach = max(self.cfg.near_min_m, f.speed_max_mps * max(0.0, t - self.cal_time))
+        return cal.x * self.gsd, cal.y * self.gsd, reach
+
+    def _near_last_fix(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
+        """The frame searched around the predicted position (:meth:`_near_prediction`) before any whole-map
+        search, every heading the prior allows, the ground resolution carried (or the frame's own); a best peak
+        with a rival elsewhere in the reach is taken when it is also distinct within ``near_inner`` of it."""
+        cal, k = self.calibration, self.cfg.window.sigma_k
+        x, y, reach_m = self._near_prediction(ref.time)
         scale = priors.gsd_m / self.gsd if priors.gsd_m is not None else cal.scale
-        pose = Pose(cal.x, cal.y, cal.turn_deg, scale)
+        pose = Pose(x / self.gsd, y / self.gsd, cal.turn_deg, scale)
         angles = priors.heading_search() or (cal.turn_deg,)
-        fix = self.matcher(
-            image,
-            pose,
-            reach_m / 3 / self.gsd,
-            angles=angles,
-            max_px=self.cfg.near_max_px,
-            min_ratio=self.cfg.near_ratio,
-        )
+
+        def search(reach: float, ratio: float):
+            return self.matcher(image, pose, reach / k / self.gsd, angles, self.cfg.near_max_px, ratio)
+
+        fix, where = search(reach_m, 1.0), ""
+        if fix is not None and not fix.ratio >= self.cfg.near_ratio:
+            inner = search(reach_m * self.cfg.near_inner, self.cfg.near_ratio)
+            same = inner is not None and math.hypot(inner.x - fix.x, inner.y - fix.y) * self.gsd <= max(
+                10.0, 2 * self.gsd
+            )
+            fix, where = (inner, f", distinct within {reach_m * self.cfg.near_inner:.0f} m") if same else (None, "")
         if fix is None:
-            return None, f"not localized: nothing distinct within {reach_m:.0f} m of the last fix"
-        status = f"re-localized near the last fix (score {fix.score:.2f}, ratio {fix.ratio:.2f}, {reach_m:.0f} m)"
+            return None, f"not localized: nothing distinct within {reach_m:.0f} m of the prediction"
+        status = (
+            f"re-localized near the prediction (score {fix.score:.2f}, ratio {fix.ratio:.2f}, {reach_m:.0f} m{where})"
+        )
         return Pose(fix.x, fix.y, fix.turn_deg, pose.scale), status
 
     def _dense_global(self, image, priors: Priors) -> tuple[Pose | None, str]:

@@ -46,11 +46,16 @@ def simulated(f: dict, folder: Path):
     from aeroloc.maps.sources import open_map
 
     w, h = (int(v) for v in str(f.get("size", "480x360")).split("x"))
-    plan = FlightPlan(frames=f["frames"], gap_frames=f.get("gap", 30), seed=f.get("seed", 0), width=w, height=h)
+    flying = {k: f[k] for k in ("speed_mps", "leg_s", "turn_rate_dps", "replan_s") if k in f}
+    if "alt_m" in f:
+        flying["alt_m"] = tuple(float(v) for v in f["alt_m"])
+    plan = FlightPlan(
+        frames=f["frames"], gap_frames=f.get("gap", 30), seed=f.get("seed", 0), width=w, height=h, **flying
+    )
     if not (folder / "truth.csv").is_file():
         m = open_map(f["map"])
-        comp = compose(m, [q for c in f["crops"] for q in load_queries(c, priors="none")])
-        write_flight(folder, m, comp, plan)
+        crops = [q for c in f["crops"] for q in load_queries(c, priors="none")]
+        write_flight(folder, m, compose(m, crops, factor=f.get("factor", 2.0)), plan)
     with open(folder / "truth.csv", newline="") as fh:
         truth = {r["name"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(fh)}
     tel = folder / "telemetry.csv" if f.get("telemetry") else None

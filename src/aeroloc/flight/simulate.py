@@ -37,6 +37,8 @@ class FlightPlan:
     alt_m: tuple[float, float] = (700.0, 950.0)  # height above ground, range flown
     leg_s: float = 25.0  # seconds of straight flight between turns
     turn_rate_dps: float = 6.0
+    replan_s: float = 20.0  # a turn's worth of flight: a new leg when the coverage ahead ends within this (a
+    # drone over small covered islands: shorter legs, faster turns, an earlier re-plan)
     gap_start: float = 0.6  # the lost stretch starts at this share of the flight
     gap_frames: int = 30
     seed: int = 0
@@ -100,7 +102,7 @@ def fly(plan: FlightPlan, comp: Composite):
     leg_left = 0
     for i in range(plan.frames):
         yield i, i * dt, State(s.x, s.y, s.yaw % 360.0, s.alt)
-        ahead = int(20 * plan.rate_hz)  # a turn's worth of flight: re-plan before the coverage ends
+        ahead = int(plan.replan_s * plan.rate_hz)  # re-plan before the coverage ends
         if leg_left <= 0 or _free_run(safe, s, target_yaw, step, ahead) < ahead:
             target_yaw = _new_leg(safe, s, rng, step, lookahead)
             target_alt = float(rng.uniform(*plan.alt_m))

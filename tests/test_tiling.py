@@ -321,3 +321,18 @@ def test_a_changed_map_is_refused(tmp_path, naip_map):
     (tmp_path / "db" / "tiles.json").write_text(__import__("json").dumps(info))
     with pytest.raises(AerolocError, match=r"changed since the tile grid was made \(width 1000 -> 934\)"):
         TileSource(tmp_path / "db").image(0)
+
+
+@pytest.mark.parametrize("which", ["naip", "seed"])
+def test_tiles_csv_written_from_lists_has_the_bytes_of_the_dict_writer(which, naip, seed, tmp_path):
+    """tiles.csv is written from plain row lists (no per-tile dict, for 10^7-tile grids): the file has the
+    bytes the per-tile ``tile_row`` dicts give through csv.DictWriter, on a GeoTIFF and on a tile folder."""
+    m = naip if which == "naip" else seed[1]
+    write_tiles(m, tmp_path / "db", 2.5, 0.5, progress=False)
+    rows = [tiling.tile_row(t) for t in TileGrid(m, 2.5, 0.5)]
+    with open(tmp_path / "want.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=tiling.CSV_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    assert len(rows) > 20
+    assert (tmp_path / "db" / tiling.TILES_CSV).read_bytes() == (tmp_path / "want.csv").read_bytes()

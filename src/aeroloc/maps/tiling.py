@@ -172,19 +172,35 @@ class TileGrid:
         return len(self.cols) * len(self.rows)
 
     def __iter__(self):
-        t = self.map.transform
-        for i, r in enumerate(self.rows):
-            for j, c in enumerate(self.cols):
-                yield Tile(
-                    id=f"r{i:03d}c{j:03d}",
-                    col=c,
-                    row=r,
-                    width=self.tile_w,
-                    height=self.tile_h,
-                    transform=shifted(t, c, r),
-                    crs=self.map.crs,
-                    path=f"images/r{i:03d}c{j:03d}.png",
-                )
+        return (self[k] for k in range(len(self)))
+
+    def __getitem__(self, k: int) -> Tile:
+        """Tile ``k`` in row-major order (the tiles.csv order), without making the others."""
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        i, j = divmod(k, len(self.cols))
+        c, r = self.cols[j], self.rows[i]
+        name = f"r{i:03d}c{j:03d}"
+        return Tile(
+            name, c, r, self.tile_w, self.tile_h, shifted(self.map.transform, c, r), self.map.crs, f"images/{name}.png"
+        )
+
+    def table(self) -> list[list]:
+        """``tile_table(list(self))`` without making a Tile (an Affine each) per window: the same numbers, as
+        each transform's offset is the same float arithmetic as :func:`shifted`, done on arrays."""
+        t, n_cols = self.map.transform, len(self.cols)
+        col = np.tile(np.asarray(self.cols, float), len(self.rows))
+        row = np.repeat(np.asarray(self.rows, float), n_cols)
+        ones = np.ones(len(col))
+        coefs = np.stack(
+            [t.a * ones, t.b * ones, t.a * col + t.b * row + t.c, t.d * ones, t.e * ones, t.d * col + t.e * row + t.f],
+            1,
+        )
+        ids = [f"r{i:03d}c{j:03d}" for i in range(len(self.rows)) for j in range(n_cols)]
+        cols, rows = [int(c) for c in self.cols] * len(self.rows), [int(r) for r in self.rows for _ in range(n_cols)]
+        w, h = np.full(len(col), float(self.tile_w)), np.full(len(col), float(self.tile_h))
+        fixed = [(self.tile_w, self.tile_h, c, r, self.map.crs) for c, r in zip(cols, rows)]
+        return _table(ids, [f"images/{x}.png" for x in ids], coefs, w, h, fixed, self.map.crs)
 
     def params(self) -> dict:
         """The grid as tiles.json holds it. Square grids keep the one-side keys (``base_px``, ``side_px``,
@@ -274,18 +290,24 @@ def tile_table(tiles: list[Tile]) -> list[list]:
     )
     w = np.array([t.width for t in tiles], float)
     h = np.array([t.height for t in tiles], float)
+    fixed = [(t.width, t.height, t.col, t.row, t.crs) for t in tiles]
+    return _table([t.id for t in tiles], [t.path for t in tiles], tr, w, h, fixed, crs.pop())
+
+
+def _table(ids, paths, tr: np.ndarray, w: np.ndarray, h: np.ndarray, fixed, crs: str) -> list[list]:
+    """tiles.csv rows from the tiles' columns: ``tr`` (n, 6) transforms, ``w``/``h`` sizes and ``fixed`` the
+    (width, height, col, row, crs) cells; the corners' lat/lon in one pyproj call."""
     a, b, c, d, e, f = tr.T
-    zero = np.zeros(len(tiles))
+    zero = np.zeros(len(ids))
     xs = np.concatenate([a * zero + b * zero + c, a * w + b * h + c])
     ys = np.concatenate([d * zero + e * zero + f, d * w + e * h + f])
-    lat, lon = geo.crs_to_latlon(xs, ys, crs.pop())
-    n = len(tiles)
+    lat, lon = geo.crs_to_latlon(xs, ys, crs)
+    n = len(ids)
     lat, lon, coefs = np.asarray(lat, float).tolist(), np.asarray(lon, float).tolist(), tr.tolist()
     return [
-        [t.id, t.path, f"{lat[i]:.9f}", f"{lon[i]:.9f}", f"{lat[n + i]:.9f}", f"{lon[n + i]:.9f}"]
-        + [t.width, t.height, t.col, t.row, t.crs]
+        [ids[i], paths[i], f"{lat[i]:.9f}", f"{lon[i]:.9f}", f"{lat[n + i]:.9f}", f"{lon[n + i]:.9f}", *fixed[i]]
         + [repr(v) for v in coefs[i]]
-        for i, t in enumerate(tiles)
+        for i in range(n)
     ]
 
 
@@ -369,18 +391,17 @@ def write_tiles(
     for stale in (out / TILES_CSV, out / TILES_JSON):
         stale.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    tiles = list(grid)
     if write_images:
         _discard_other_partial_build(out, report)
         (out / "images").mkdir(parents=True, exist_ok=True)
         (out / BUILDING_JSON).write_text(json.dumps(_build_key(report)))
-        rows, nbytes = _render(m, tiles, out, progress)
+        rows, nbytes = _render(m, list(grid), out, progress)
     else:
         out.mkdir(parents=True, exist_ok=True)
-        rows, nbytes = tile_table(tiles), 0
+        rows, nbytes = grid.table(), 0
     report = replace(
         report,
-        map={**report.map, "content_sha1": map_reference(m, tiles)["content_sha1"]},
+        map={**report.map, "content_sha1": map_reference(m, grid)["content_sha1"]},
         build_s=round(time.perf_counter() - t0, 3),
         image_bytes=nbytes,
     )

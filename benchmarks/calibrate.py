@@ -15,14 +15,15 @@ from collections import defaultdict
 import numpy as np
 from scipy.optimize import minimize
 
-from aeroloc.localization.confidence import SOURCES, StageModel, source_of
+from aeroloc.localization.confidence import SOURCES, StageModel, evidence, source_of
 from aeroloc.maps.sources import open_map
 
 BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0001)
 
 
 def load(paths: list[str]) -> list[dict]:
-    """Localized fixes of the newest run of every configuration: map, set, stage, inliers, error, t."""
+    """Localized fixes of the newest run of every configuration: map, set, stage, evidence (inliers or
+    ratio), error, t."""
     rows, gsd = [], {}
     for p in paths:
         db = sqlite3.connect(p)
@@ -45,7 +46,7 @@ def load(paths: list[str]) -> list[dict]:
                         "map": r["map"],
                         "set": r["queries"],
                         "source": source_of(q["status"]),
-                        "inliers": int(q["inliers"] or 0),
+                        "evidence": evidence(q["status"], int(q["inliers"] or 0)),
                         "error_m": float(q["error_m"]),
                         "gsd": g,
                         "t_m": max(5.0, 2.0 * g),
@@ -55,7 +56,7 @@ def load(paths: list[str]) -> list[dict]:
 
 
 def fit(rows: list[dict]) -> dict[str, StageModel]:
-    """Per stage: logistic regression of 'within t' on ln(inliers) (L2-regularised, so a stage whose every fix
+    """Per stage: logistic regression of 'within t' on ln(evidence) (L2-regularised, so a stage whose every fix
     is right gets a high but finite confidence), and the sigma scale from the median error."""
     models = {}
     for s in SOURCES:
@@ -63,7 +64,7 @@ def fit(rows: list[dict]) -> dict[str, StageModel]:
         if not rs:
             models[s] = StageModel(a=0.0, b=0.0, sigma0_m=1.0, sigma_px=0.5)
             continue
-        x = np.log(np.maximum(1, [r["inliers"] for r in rs]))
+        x = np.log(np.maximum(1, [r["evidence"] for r in rs]))
         y = np.array([r["error_m"] <= r["t_m"] for r in rs], float)
 
         def loss(w, x=x, y=y):
@@ -94,7 +95,9 @@ def reliability(rows: list[dict]) -> list[dict]:
         for r in rows:
             if r["map"] == m:
                 mod = models[r["source"]]
-                scored.append({**r, "conf": mod.confidence(r["inliers"]), "sigma": mod.sigma_m(r["inliers"], r["gsd"])})
+                scored.append(
+                    {**r, "conf": mod.confidence(r["evidence"]), "sigma": mod.sigma_m(r["evidence"], r["gsd"])}
+                )
     return scored
 
 

@@ -16,25 +16,28 @@ coefficients below are that script's output; rerun it after changing a stage.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
-SOURCES = ("cascade", "sweep", "dense")
+SOURCES = ("cascade", "sweep", "structure", "dense")
+_RATIO = re.compile(r"ratio ([0-9.]+|inf)")
 
 
 @dataclass(frozen=True)
 class StageModel:
-    """``P(within t) = 1 / (1 + exp(-(a + b * ln(inliers))))``; 1-sigma error ``sigma0_m + sigma_px x map px``."""
+    """``P(within t) = 1 / (1 + exp(-(a + b * ln(evidence))))``; 1-sigma error ``sigma0_m + sigma_px x map px``.
+    The evidence is the verified inliers of a local-feature fix, the distinctness ratio of a structural one."""
 
     a: float
     b: float
     sigma0_m: float
     sigma_px: float
 
-    def confidence(self, inliers: int) -> float:
-        z = self.a + self.b * math.log(max(1, inliers))
+    def confidence(self, evidence: float) -> float:
+        z = self.a + self.b * math.log(max(1.0, min(evidence, 1e6)))
         return 1.0 / (1.0 + math.exp(-z))
 
-    def sigma_m(self, inliers: int, map_gsd: float) -> float:
+    def sigma_m(self, evidence: float, map_gsd: float) -> float:
         return max(0.25 * map_gsd, self.sigma0_m + self.sigma_px * map_gsd)
 
 
@@ -42,6 +45,8 @@ class StageModel:
 MODELS: dict[str, StageModel] = {
     "cascade": StageModel(a=2.66, b=0.0, sigma0_m=0.903, sigma_px=0.645),
     "sweep": StageModel(a=-2.987, b=1.578, sigma0_m=0.814, sigma_px=0.551),
+    # provisional, from the structure check's own measurement (69 accepted sweep candidates, 6 sets x 3 modes)
+    "structure": StageModel(a=0.635, b=3.339, sigma0_m=1.062, sigma_px=0.718),
     # no dense-stage fix in the atlas (it runs only with --query-gsd): a neutral model, not a fitted one
     "dense": StageModel(a=2.0, b=0.0, sigma0_m=1.0, sigma_px=0.5),
 }
@@ -50,6 +55,8 @@ MIN_CONFIDENCE = 0.5  # a fix below this is reported "not localized"
 
 def source_of(status: str) -> str:
     """The stage a localized result's ``status`` names."""
+    if status.startswith("localized (sweep") and "structure confirmed" in status:
+        return "structure"
     if status.startswith("localized (sweep"):
         return "sweep"
     if status.startswith("localized (dense"):
@@ -57,7 +64,17 @@ def source_of(status: str) -> str:
     return "cascade"
 
 
+def evidence(status: str, inliers: int) -> float:
+    """What a fix's confidence rests on: the distinctness ratio its status states for a structural (dense or
+    sweep-structure) fix, its verified inliers otherwise."""
+    if source_of(status) in ("structure", "dense"):
+        m = _RATIO.search(status)
+        return float(m.group(1)) if m else 1.0
+    return float(inliers)
+
+
 def assess(status: str, inliers: int, map_gsd: float, models: dict[str, StageModel] | None = None):
     """(confidence, sigma_m) of a localized result."""
     m = (models or MODELS)[source_of(status)]
-    return m.confidence(inliers), m.sigma_m(inliers, map_gsd)
+    e = evidence(status, inliers)
+    return m.confidence(e), m.sigma_m(e, map_gsd)

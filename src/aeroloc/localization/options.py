@@ -85,12 +85,16 @@ class LocalizeOptions:
         return heading_angles(self.dense_overrides, self.north_up)
 
     def sweep_conf(self) -> dict:
+        """The sweep's settings in effect: its search (aeroloc.matching.sweep) and its structural confirmation
+        (aeroloc.localization.structure_check)."""
+        from aeroloc.localization.structure_check import STRUCTURE_DEFAULTS
         from aeroloc.matching.sweep import SWEEP_DEFAULTS
 
-        unknown = set(self.sweep_overrides or {}) - set(SWEEP_DEFAULTS)
+        known = {**SWEEP_DEFAULTS, **STRUCTURE_DEFAULTS}
+        unknown = set(self.sweep_overrides or {}) - set(known)
         if unknown:
-            raise AerolocError(f"unknown sweep settings {sorted(unknown)}; known: {sorted(SWEEP_DEFAULTS)}")
-        return {**SWEEP_DEFAULTS, **(self.sweep_overrides or {})}
+            raise AerolocError(f"unknown sweep settings {sorted(unknown)}; known: {sorted(known)}")
+        return {**known, **(self.sweep_overrides or {})}
 
     def signature(self, db, query_names: list[str], query_scale: float, priors: list[str] | None = None) -> str:
         """Everything a results file depends on, as a string: a run resumes or reuses a file only when equal.

@@ -20,6 +20,7 @@ import numpy as np
 from aeroloc.core import geo
 from aeroloc.core.images import valid_mask
 from aeroloc.localization.alignment import Alignment, align
+from aeroloc.localization.structure_check import STRUCTURE_DEFAULTS, confirm_structure
 from aeroloc.localization.window import Window
 from aeroloc.maps.tiling import Tile, shifted
 from aeroloc.matching.features import extract
@@ -43,7 +44,7 @@ class SweepLocator:
 
     def __init__(self, map_, conf: dict | None = None):
         self.map = map_
-        self.conf = {**SWEEP_DEFAULTS, **(conf or {})}
+        self.conf = {**SWEEP_DEFAULTS, **STRUCTURE_DEFAULTS, **(conf or {})}
         self.map_gsd = float(map_.resolution_m)
         self._pyramid: MapPyramid | None = None
 
@@ -146,26 +147,30 @@ def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, min_inliers: 
 
 
 def accept_fix(locator: SweepLocator, reranker, image: np.ndarray, priors=None) -> tuple[SweepFix, str] | None:
-    """The first of the sweep's best ``confirm`` candidates that local features confirm, and why it was
-    accepted; None when none is.
+    """The first of the sweep's best ``confirm`` candidates that local features or structure confirm, and why it
+    was accepted; None when none is.
 
     The rule: the query, turned and scaled as the candidate says, aligns on the candidate's map window with at
     least ``confirm_inliers`` inliers and within max(25 m, 10 map px) of the candidate. Over the shared sets,
     windows that do not contain the query's ground gave 0-15 inliers (the same search where the query is not),
     right ones 14-118; an alignment on a window that only overlaps the query's ground lands at the true place,
-    away from its candidate, and is refused by the agreement test."""
+    away from its candidate, and is refused by the agreement test. When local features find too little, the
+    candidate's structure is checked instead (aeroloc.localization.structure_check)."""
     res = locator.search(image, priors)
     if res is None:
         return None
     c = locator.conf
     reach = max(25.0, 10.0 * locator.map_gsd)
-    tried = []
     for rank, h in enumerate(res.candidates[: c["confirm"]]):
         fix, n = confirm(reranker, locator.map, image, h, reach, c["confirm_inliers"])
-        tried.append(n)
         if fix is not None:
             fix = SweepFix(fix.alignment, fix.inliers, fix.hypothesis, fix.agreement_m, rank)
             return fix, f"confirmed by {n} local-feature inliers, {fix.agreement_m:.1f} m from candidate {rank + 1}"
+        s = confirm_structure(locator.map, image, h, reach, c) if c["structure"] else None
+        if s is not None:
+            fix = SweepFix(Alignment("localized", s.lat, s.lon), n, h, s.agreement_m, rank)
+            why = f"structure confirmed: score {s.score:.2f}, ratio {s.ratio:.2f}, {s.agreement_m:.1f} m from candidate {rank + 1}"
+            return fix, why
     return None
 
 

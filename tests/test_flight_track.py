@@ -93,6 +93,29 @@ def test_coasting_follows_the_turn_the_frames_showed(flight):
     assert ends[True] < 10.0 < ends[False]  # the arc: within 10 m after 6 s; straight on: farther
 
 
+def test_baseline_scale_measures_a_short_odometry_chain(flight):
+    """Odometry steps 3 % short (a drifted scale) against fixes on the true path: the baselines between fixes
+    far enough apart give the correction, and it converges on 1 / 0.97 without overshooting."""
+    from aeroloc.flight.calibration import BaselineScale
+
+    folder, _, m = flight
+    rows = list(_truth(folder).values())[:20]
+    g = m.resolution_m
+    xy = [tuple(float(v) * g for v in m.latlon_to_pixel(float(r["lat"]), float(r["lon"]))) for r in rows]
+    b, scale, factors = BaselineScale(min_m=250.0), 0.97, []  # the 20 frames: a 57° arc, 380 m
+    for _ in range(8):  # the 20 frames flown again and again (the chain kept across repeats by a jump)
+        b.broken()
+        for i, (x, y) in enumerate(xy):
+            if i:
+                b.moved((x - xy[i - 1][0]) * scale, (y - xy[i - 1][1]) * scale)
+            k = b.fix(x, y)
+            if k is not None:
+                scale *= k
+                factors.append(k)
+    assert factors and all(k > 1.0 for k in factors[:2])  # too short: lengthened
+    assert abs(scale - 1.0) < 0.005 and all(abs(k - 1) <= 0.02 for k in factors)
+
+
 def test_track_is_accurate_after_the_first_fix_and_recovers_after_the_gap(flight, tracked):
     folder, plan, m = flight
     points, out, _, _ = tracked

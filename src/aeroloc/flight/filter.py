@@ -25,7 +25,8 @@ from dataclasses import dataclass
 class FilterConfig:
     speed_max_mps: float = 60.0  # the speed bound: no aircraft step is larger than this x the time step
     coast_share: float = 0.5  # coasting: sigma grows by this share of the speed bound per second
-    vo_rel: float = 0.03  # odometry: relative error of a step's length
+    vo_rel: float = 0.02  # odometry: relative error of a step's length (with a height or the baseline scale: NAIP
+    # steps 0.5-1 % off; 0.03 let biased fixes drag the track, 0.01 let the scale's drift through)
     vo_abs_m: float = 0.5  # odometry: error added per step, metres
     fix_sigma_m: float = 5.0  # a windowed fix's error, metres (at least one map pixel)
     global_sigma_m: float = 5.0

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from aeroloc.core.priors import Priors
-from aeroloc.flight.calibration import Pose, pose_from_dense, pose_from_homography
+from aeroloc.flight.calibration import BaselineScale, Pose, pose_from_dense, pose_from_homography
 from aeroloc.flight.filter import Estimate, FilterConfig, PositionFilter
 from aeroloc.flight.frames import FrameRef
 from aeroloc.flight.odometry import Odometry
@@ -39,7 +39,9 @@ class TrackConfig:
     anchor_score: float = 0.3  # ... each scoring at least this (NAIP: fixes under 0.3 were 10-45 m off, median 18 m,
     # and three of them, 95 % overlapping frames over the same changed lake shore, 'agreed' on a place 45 m off)
     fix_score_ref: float = 0.4  # a windowed fix's sigma is the filter's fix sigma x (this / score)^fix_score_pow,
-    fix_score_pow: float = 3.0  # never less: NAIP fixes at 0.45+ were 3 m off (median), at 0.30-0.35 5-18 m
+    fix_score_pow: float = 1.5  # never less: NAIP fixes at 0.45+ were 3 m off (median), at 0.30-0.35 5-18 m (a
+    # power of 3 made the track slow to come back after biased stretches: 0.67 within 10 m vs 0.75 at 1.5)
+    scale_score: float = 0.35  # fixes at least this good measure the odometry's scale over long baselines
     pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
     dense_every: int = 3  # ... and the whole-map dense search on every n-th (the first lost frame included)
     near_share: float = 0.5  # while lost: first search around the last estimate carried on at its velocity, as
@@ -132,6 +134,8 @@ class Tracker:
         self.lost_since: float | None = None
         self.rejected: list[tuple[float, float]] = []  # offsets fix - prediction (m) of the fixes rejected in a row
         self.frames_since_fix = 0
+        self.baseline = BaselineScale()  # the odometry's scale from fix-to-fix baselines (frames without a height)
+        self.metric = False  # whether this frame's scale came from its own metadata
         self.lost_frames = 0
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
         self.dead: tuple[Estimate, float] | None = None  # the filter's estimate when the track was lost, and when
@@ -190,8 +194,11 @@ class Tracker:
             self.filter.predict_odometry((new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd, dt, turn)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
             self.pose = new if moved else self.pose
+            if moved:
+                self.baseline.moved(self.filter.est.x - before[0], self.filter.est.y - before[1])
         if not moved:
             self.filter.predict_coast(dt)
+            self.baseline.broken()
         e = self.filter.est
         self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, self._frame_scale(ref, size))
         reason = "undecodable frame" if image is None else "blank frame" if blank else ""
@@ -214,9 +221,11 @@ class Tracker:
     def _frame_scale(self, ref: FrameRef, size) -> float:
         """The pose's scale: the frame's own ground resolution when its metadata gives one (a barometric height
         and the lens: no drift), else the one the odometry carried (its scale changes compose, and drift)."""
+        self.metric = False
         if size is not None and ref.priors.known:
             gsd = ref.priors.with_image_width(size[0]).gsd_m
             if gsd is not None and gsd > 0:
+                self.metric = True
                 return gsd / self.gsd
         return self.pose.scale
 
@@ -238,10 +247,16 @@ class Tracker:
             status = f"fix rejected: {d:.0f} m from the prediction (gate {self.filter.gate(sigma_fix):.0f} m)"
             if fix.score < self.cfg.anchor_score or not self._reanchor(offset, fix, sigma_fix):
                 return status, False
+            self.baseline.broken()
             status = f"re-anchored: {self.cfg.anchor_after} rejected fixes agreed ({d:.0f} m from the prediction)"
         else:
             self.rejected.clear()
             status = f"window fix (score {fix.score:.2f}, {d:.1f} m from the prediction)"
+            if fix.score >= self.cfg.scale_score and not self.metric:
+                k = self.baseline.fix(fix.x * self.gsd, fix.y * self.gsd)
+                if k is not None:
+                    self.pose = replace(self.pose, scale=self.pose.scale * k)
+                    status += f", scale x{k:.3f} from the baseline"
         e = self.filter.est
         # position only, the heading nudged: the dense refinement's scale and turn come in 3 % / 2° steps and
         # were biased on NAIP flights (scales 0.94-0.97 preferred at the true pose), while the odometry's
@@ -317,6 +332,7 @@ class Tracker:
         self.pose = self.calibration = pose
         self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
         self.rejected.clear()
+        self.baseline.broken()
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
 

@@ -4,7 +4,8 @@ usage: nice python benchmarks/flights.py experiments/flights.yaml [--only NAME-S
 
 Simulated flights are written once into OUT/<name>/ (aeroloc.flight.simulate) and tracked without truth; the
 Toledo photo flights are the shared set's photos of one camera in EXIF time order, scored against their EXIF GPS
-(itself ±2-5 m). RSS is read from /proc at the first frame, a tenth into the flight (every model loaded) and at the end.
+(itself ±2-5 m). RSS is read from /proc at the first frame, a tenth into the flight (every model loaded), half way
+and at the end.
 """
 
 from __future__ import annotations
@@ -85,11 +86,11 @@ def run_one(f: dict, out: Path) -> dict:
     config = TrackConfig(filter=replace(FilterConfig(), speed_max_mps=f.get("speed_max", 60.0)))
     rss = []
 
-    tenth = max(2, len(flight.frames) // 10)
+    marks = (1, max(2, len(flight.frames) // 10), max(3, len(flight.frames) // 2))
 
     def on_point(p, n=[0]):  # noqa: B006 (a counter across calls)
         n[0] += 1
-        if n[0] in (1, tenth):  # the first frame, and a tenth in (every model loaded by then)
+        if n[0] in marks:  # the first frame, a tenth in (every model loaded by then), half way
             rss.append(rss_mb())
 
     t0 = time.perf_counter()
@@ -103,7 +104,7 @@ def run_one(f: dict, out: Path) -> dict:
 def table(rows: list[dict]) -> str:
     head = (
         "| flight | frames | first fix: frame (s) | within t (t) | within 10 m | wrong | coasted (>3σ) | lost "
-        "| median err | frames/s tracking (overall) | recovery after gap | RSS MB: 1st frame → 10 % → end |"
+        "| median err | frames/s tracking (overall) | recovery after gap | RSS MB: 1st frame → 10 % → 50 % → end |"
     )
     lines = [head, "|" + "---|" * 12]
     for r in rows:

@@ -396,3 +396,21 @@ def test_pca_fitted_by_randomized_svd_matches_faiss_pca():
     ua = faiss.vector_to_array(ours.A).reshape(32, 256)[:16]
     ub = faiss.vector_to_array(ref.A).reshape(32, 256)[:16]
     assert np.linalg.svd(ua @ ub.T, compute_uv=False).min() > 0.99  # the same 16 leading directions
+
+
+def test_hnsw_from_the_store_keeps_its_search_breadth(tmp_path):
+    """An HNSW index built from the store is saved with ``ef_search`` (faiss's default 16 loses recall on real
+    8192-d tiles), so a search after load_index uses it; it agrees with exact search on most neighbours."""
+    import faiss
+
+    from aeroloc.retrieval.index import EF_SEARCH, build_index_from_store
+
+    x = unit_rows(1500, 64, seed=5)
+    np.save(tmp_path / "d.npy", x.astype(np.float16))
+    assert build_index_from_store(tmp_path / "d.npy", tmp_path / "i.faiss", "HNSW32,SQ8", chunk=400) == "HNSW32,SQ8"
+    back = load_index(tmp_path / "i.faiss")
+    assert faiss.downcast_index(back).hnsw.efSearch == EF_SEARCH
+    x16 = np.load(tmp_path / "d.npy").astype(np.float32)
+    _, got = search(back, x16[:40], 10)
+    _, want = search(build_index(x16, "Flat"), x16[:40], 10)
+    assert np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)]) >= 0.9

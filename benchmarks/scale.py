@@ -1,7 +1,7 @@
 """Country-size maps (issue #15): prints the figures of tiles-as-windows, sharded in-process vs Ray builds, build
 RAM, approximate-index recall and a 10^6-vector index. Not part of the test suite; bounded to minutes.
 
-    nice .venv/bin/python benchmarks/scale.py [--tiles 20000] [--skip-build] [--out /tmp/aeroloc-scale]
+    nice .venv/bin/python benchmarks/scale.py [--only tiling|build|recall|million] [--no-ray] [--out /tmp/aeroloc-scale]
 
 Builds run in child processes so each peak RSS (ru_maxrss) is its own. The build method is effnet-vlad on
 small NAIP tiles (zoom 10 = 26 px, 130 m): a cheap way to get >= 2x10^4 real tiles from the 934x723 px map.
@@ -112,14 +112,11 @@ def run_child(*args) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def bench_builds(work: Path) -> dict:
+def bench_builds(work: Path, with_ray: bool = True) -> dict:
     """In-process (1e4 and 2e4 tiles) and Ray local 2 workers (2e4): throughput and peak RSS."""
     res = {}
-    for name, zoom, overlap, ray in [
-        ("1e4 in-process", 10, 0.72, ""),
-        ("2e4 in-process", 10, 0.8, ""),
-        ("2e4 ray 2 workers", 10, 0.8, "local"),
-    ]:
+    runs = [("1e4 in-process", 10, 0.72, ""), ("2e4 in-process", 10, 0.8, ""), ("2e4 ray 2 workers", 10, 0.8, "local")]
+    for name, zoom, overlap, ray in runs[: 3 if with_ray else 2]:
         folder = work / f"build-{name.replace(' ', '-')}"
         shutil.rmtree(folder, ignore_errors=True)
         res[name] = run_child(folder, zoom, overlap, ray, 2)
@@ -127,34 +124,94 @@ def bench_builds(work: Path) -> dict:
     return res
 
 
-def bench_recall(work: Path) -> dict:
-    """Neighbour recall@1/10 of the auto large-map index (PCA256,IVF,SQ8) vs exact, on real tile descriptors,
-    queried with the NAIP dev photos' descriptors."""
-    from aeroloc.core.images import read_image
-    from aeroloc.core.queries import load_queries
-    from aeroloc.retrieval.database import Database
-    from aeroloc.retrieval.descriptors import describe_image
-    from aeroloc.retrieval.index import build_index_from_store, load_index, search
+# real sets for the recall figures: (name, map, tile_m, overlap, query folders)
+RECALL_SETS = [
+    ("naip-nd 150 m", NAIP, 150, 5 / 6, [DATA / "naip-nd" / "dev"]),
+    ("levir-tx 32 m", DATA / "multi-region" / "levir-tx" / "map.tif", 32, 0.5, ["north", "any"]),
+    ("szada-hu 96 m", DATA / "multi-region" / "szada-hu" / "map.tif", 96, 0.5, ["north", "any"]),
+]
 
-    folder = work / "build-2e4-in-process"
-    db = Database(folder)
-    model, store, exact, _ = db.load_method(METHOD)
-    qs = load_queries(DATA / "naip-nd" / "dev" / "queries.csv")
-    side = db.tiles[0].width
+
+def recall_factories(n: int) -> list[tuple[str, dict]]:
+    """(factory, search parameters) compared with exact Flat: auto's large-map shape (PCA256, IVF, SQ8), PCA to
+    more dimensions, IVF without PCA at growing nprobe, 8-bit codes scanned in full, and a graph (HNSW)."""
+    nlist = int(2 ** round(np.log2(4 * np.sqrt(n))))
+    out = [(f"PCA256,IVF{nlist},SQ8", {"nprobe": 32}), (f"PCA1024,IVF{nlist},SQ8", {"nprobe": 32})]
+    out += [(f"IVF{nlist},SQ8", {"nprobe": p}) for p in (32, 128)]
+    return out + [("SQ8", {}), ("HNSW32,SQ8", {"efSearch": 64}), ("HNSW32,SQ8", {"efSearch": 256})]
+
+
+def _set_params(index, params: dict) -> None:
+    import faiss
+
+    if "nprobe" in params:
+        faiss.extract_index_ivf(index).nprobe = params["nprobe"]
+    if "efSearch" in params:
+        faiss.downcast_index(index).hnsw.efSearch = params["efSearch"]
+
+
+def _set_queries(db, model, folders) -> np.ndarray:
+    """Descriptors of the set's real query images (resized to the tile side, as the tiles are seen)."""
     import cv2
 
-    q = np.concatenate([describe_image(model, cv2.resize(read_image(x.path), (side, side)), "cpu")[0] for x in qs])
-    _, want = search(exact, q, 10)
-    nlist = 256
-    build_index_from_store(store.path, work / "approx.faiss", f"PCA256,IVF{nlist},SQ8", nprobe=32)
-    _, got = search(load_index(work / "approx.faiss"), q, 10)
-    return {
-        "n": store.n,
-        "queries": len(q),
-        "factory": f"PCA256,IVF{nlist},SQ8 nprobe 32",
-        "r@1": float(np.mean(got[:, 0] == want[:, 0])),
-        "r@10": float(np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)])),
-    }
+    from aeroloc.core.images import read_image
+    from aeroloc.core.queries import load_queries
+    from aeroloc.retrieval.global_shards import describe
+
+    side = db.tiles[0].width
+    paths = [x.path for f in folders for x in load_queries(Path(f) / "queries.csv")]
+    return describe(model, [cv2.resize(read_image(p), (side, side), interpolation=cv2.INTER_AREA) for p in paths], 16)
+
+
+def _recall(got: np.ndarray, want: np.ndarray) -> tuple[float, float]:
+    return float(np.mean(got[:, 0] == want[:, 0])), float(
+        np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)])
+    )
+
+
+def bench_recall_set(work: Path, name: str, map_path: Path, tile_m: float, overlap: float, folders) -> list[dict]:
+    """Build the set's real descriptors (exact index), then each factory from the same store: training+fill
+    seconds, ms/query and recall@1/@10 of the exact top-10, for the real queries and for 300 tiles as queries."""
+    from aeroloc.maps.tiling import write_tiles
+    from aeroloc.retrieval.database import Database, build_global
+    from aeroloc.retrieval.index import build_index_from_store, load_index, search
+
+    folder = work / f"recall-{name.split()[0]}"
+    folders = [f if isinstance(f, Path) else map_path.parent / f for f in folders]
+    write_tiles(map_path, folder, 1.0, overlap, tile_m=tile_m, progress=False)
+    db = Database(folder)
+    build_global(db, METHOD, progress=False, fit_max_tiles=500, index_factory="Flat")
+    model, store, exact, _ = db.load_method(METHOD)
+    tiles_q = np.asarray(store.load()[np.random.default_rng(2).choice(store.n, 300, replace=False)], np.float32)
+    queries = {"queries": _set_queries(db, model, folders).astype(np.float32), "tiles": tiles_q}
+    want = {k: search(exact, q, 10)[1] for k, q in queries.items()}
+    rows, built, build_s = [], None, 0.0
+    for factory, params in recall_factories(store.n):
+        path = work / "recall.faiss"
+        if factory != built:  # the same index searched with other parameters is built once
+            t0 = time.perf_counter()
+            build_index_from_store(store.path, path, factory)
+            built, build_s = factory, time.perf_counter() - t0
+        index = load_index(path)
+        _set_params(index, params)
+        row = {"set": name, "n": store.n, "factory": factory, **params, "build_s": round(build_s, 1)}
+        for k, q in queries.items():
+            t0 = time.perf_counter()
+            got = np.concatenate([search(index, q[i : i + 1], 10)[1] for i in range(len(q))])
+            row[f"{k} ms"] = round((time.perf_counter() - t0) * 1000 / len(q), 2)
+            row[f"{k} r@1"], row[f"{k} r@10"] = _recall(got, want[k])
+        row["n queries"] = len(queries["queries"])
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+        del index
+    for f in work.glob("recall.faiss*"):
+        f.unlink()
+    return rows
+
+
+def bench_recall(work: Path) -> list[dict]:
+    """Neighbour recall of approximate factories vs exact on every real set (see bench_recall_set)."""
+    return [r for s in RECALL_SETS for r in bench_recall_set(work, *s)]
 
 
 def child_million(npy: Path, index: Path) -> None:
@@ -224,6 +281,7 @@ def main() -> None:
     ap.add_argument("--child", nargs=5)
     ap.add_argument("--child-million", nargs=2)
     ap.add_argument("--only", choices=["tiling", "build", "recall", "million"])
+    ap.add_argument("--no-ray", action="store_true", help="builds: in-process only (the RSS figures)")
     a = ap.parse_args()
     if a.child:
         out, zoom, overlap, ray, workers = a.child
@@ -239,7 +297,7 @@ def main() -> None:
         for r in bench_tiling(work):
             print(f"| {r[0]} | {r[1]} | {r[2]:.0f} | {r[3]:.0f} | {r[4]:.1f} | {r[5]} | {r[6]:.0f} |", flush=True)
     if a.only in (None, "build"):
-        print(json.dumps(bench_builds(work), indent=1), flush=True)
+        print(json.dumps(bench_builds(work, not a.no_ray), indent=1), flush=True)
     if a.only in (None, "recall"):
         print(json.dumps(bench_recall(work)), flush=True)
     if a.only in (None, "million"):

@@ -59,3 +59,23 @@ def test_a_structural_fix_states_its_evidence_and_confidence():
     strong, sigma = assess(status, 4, 5.0)
     assert 0.5 < weak < strong < 1.0 and sigma > 0
     assert evidence("localized (sweep: heading 3°, scale 1.00; confirmed by 42 local-feature inliers)", 42) == 42
+
+
+@pytest.mark.slow
+def test_a_repeated_pattern_is_not_a_fix(data_dir, naip_db):
+    """Hungarian farmland (szada-hu): a field 547 m from this query's place matches it better (32 local-feature
+    inliers) than its true place (21). With both candidates confirmed the query is "not localized: two places
+    match"; without the rival test the sweep would have answered the wrong field."""
+    from aeroloc.localization.cascade import Reranker
+    from aeroloc.localization.sweep_stage import accept_fix
+    from aeroloc.retrieval.database import Database
+
+    reranker = Reranker(Database(naip_db), "xfeat-lighterglue")  # only its features and matcher are used
+    q = {q.name: q for q in load_queries(data_dir / "multi-region/szada-hu/any/queries.csv", priors="exact")}
+    q = q["szada_any_0_04.jpg"]
+    image = read_image(q.path)
+    szada = open_map(data_dir / "multi-region/szada-hu/map.tif")
+    fix, why = accept_fix(SweepLocator(szada), reranker, image, q.priors)
+    assert fix is None and why.startswith("two places match")
+    unguarded, _ = accept_fix(SweepLocator(szada, {"rival_margin": 0.0}), reranker, image, q.priors)
+    assert geo.geodesic_distance(unguarded.alignment.lat, unguarded.alignment.lon, q.lat, q.lon) > 400

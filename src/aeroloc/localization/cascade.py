@@ -66,6 +66,7 @@ class Reranked:
     n_screened: int = 0
     n_verified: int = 0
     query: dict = field(default_factory=dict)  # rot_k -> the query's features extracted on the way
+    ranked: list[Candidate] = field(default_factory=list)  # every candidate, best first (``candidates``: top K)
 
 
 def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarray:
@@ -219,4 +220,5 @@ class Reranker:
             n_screened,
             n_verified,
             query,
+            order,
         )

@@ -10,7 +10,7 @@ import numpy as np
 
 from aeroloc.localization.alignment import Alignment, align
 from aeroloc.localization.options import LocalizeOptions
-from aeroloc.localization.results import Localization
+from aeroloc.localization.results import AMBIGUOUS, Localization
 from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import Retriever
 
@@ -132,7 +132,8 @@ class Localizer:
             out.status = "retrieval only"
             return out
         self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms)
-        if not out.localized and self.sweep is not None and not known and not self.options.north_up:
+        ambiguous = AMBIGUOUS in out.status  # two places match: no later stage may pick one of them
+        if not out.localized and self.sweep is not None and not known and not self.options.north_up and not ambiguous:
             # heading unknown and the quarter turns found nothing: every heading and scale
             self._sweep_fix(image, None, out, r.tile_ids, top_k)
         return out
@@ -147,6 +148,7 @@ class Localizer:
         t0 = time.perf_counter()
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
+        doubt = doubt or (self._rival(image, best, rr, a) if a.localized else None)
         if doubt:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
@@ -156,7 +158,8 @@ class Localizer:
 
     def _sweep_fix(self, image: np.ndarray, priors, out: Localization, retrieved: list[str], top_k: int) -> bool:
         """The sweep's candidates confirmed by local features (aeroloc.localization.sweep_stage) into ``out``;
-        False (``out`` untouched but for the time spent) when none is confirmed."""
+        True also when two far-apart places are confirmed ("not localized": ambiguous); False (``out``
+        untouched but for the time spent) when none is confirmed."""
         from aeroloc.localization.sweep_stage import accept_fix
 
         t0 = time.perf_counter()
@@ -165,12 +168,49 @@ class Localizer:
         if found is None:
             return False
         fix, why = found
+        if fix is None:  # a repeated pattern: no other stage may pick one of the places
+            out.lat = out.lon = float("nan")
+            out.status, out.inliers, out.best, out.dense = f"not localized: {why}", 0, None, None
+            return True
         a, h = fix.alignment, fix.hypothesis
         out.lat, out.lon, out.inliers, out.best, out.dense = a.lat, a.lon, fix.inliers, None, None
         out.status = f"localized (sweep: heading {h.angle:.0f}°, scale {h.scale:.2f}; {why})"
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         out.top_tiles = self._tiles_around(float(col), float(row), retrieved)[: top_k or None]
         return True
+
+    def _rival(self, image: np.ndarray, best, rr, a: Alignment) -> str | None:
+        """Why ``best`` is ambiguous, or None: another tile aligns the query at a place more than two reaches
+        (max(25 m, 10 map px)) away with at least half the best's inliers (and the sweep's inlier floor), i.e. a
+        repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22 inliers and the cascade
+        took the wrong one (44 verified inliers; the right one 22). A far tile whose screen reaches half the
+        best's is verified by the matcher first."""
+        from aeroloc.matching.sweep import SWEEP_DEFAULTS
+
+        reach = max(25.0, 10.0 * (self.map_gsd or 0.0))
+        # a rival is a place the sweep would confirm on its own (its inlier floor), within its margin of the best
+        floor, margin = SWEEP_DEFAULTS["confirm_inliers"], SWEEP_DEFAULTS["rival_margin"]
+        verified = False
+        for c in rr.ranked:
+            if c is best or c.H is None:
+                continue
+            if not verified and c.inliers < 0 and 2 * c.screen > best.screen and self._far(image, c, a, reach):
+                verified = True  # the strongest such tile only: one more matcher run at most
+                tf = self.reranker.tile_features([c.tile_id])[c.tile_id]
+                if c.rot_k in rr.query:
+                    c.take(*self.reranker.match_pair(rr.query[c.rot_k], tf), c.rot_k, "verify")
+            strong = c.score >= floor and margin * c.score >= best.score
+            if strong and self._far(image, c, a, reach):
+                return f"{AMBIGUOUS} ({best.score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
+        return None
+
+    def _far(self, image: np.ndarray, c, a: Alignment, reach: float) -> bool:
+        """Whether candidate ``c``'s own alignment puts the query more than two reaches from ``a``."""
+        from aeroloc.core import geo
+
+        size = (image.shape[1], image.shape[0])
+        b = align(c.H, max(c.score, 4), size, self.db.by_id[c.tile_id], self.map_size, 4)
+        return b.localized and float(geo.geodesic_distance(a.lat, a.lon, b.lat, b.lon)) > 2 * reach
 
     def _align_best(self, image: np.ndarray, best) -> Alignment:
         """The query centre through the best candidate's transform into its tile, then to lat/lon."""

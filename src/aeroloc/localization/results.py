@@ -15,6 +15,8 @@ from pathlib import Path
 
 from aeroloc.core.errors import AerolocError
 
+# the status (after "not localized: ") of a query whose evidence points at two far-apart places
+AMBIGUOUS = "two places match"
 STAGES = ("descriptor", "search", "local_features", "rerank", "sweep", "align")
 COLUMNS = [
     "name",

@@ -20,6 +20,7 @@ import numpy as np
 from aeroloc.core import geo
 from aeroloc.core.images import valid_mask
 from aeroloc.localization.alignment import Alignment, align
+from aeroloc.localization.results import AMBIGUOUS
 from aeroloc.localization.structure_check import STRUCTURE_DEFAULTS, confirm_structure
 from aeroloc.localization.window import Window
 from aeroloc.maps.tiling import Tile, shifted
@@ -103,7 +104,7 @@ def footprint_window(map_, h: Hypothesis, size: tuple[int, int], margin: float =
 
 
 def confirm(
-    reranker, map_, image: np.ndarray, h: Hypothesis, reach_m: float, min_inliers: int
+    reranker, map_, image: np.ndarray, h: Hypothesis, reach_m: float, min_inliers: int, screen_min: int = 0
 ) -> tuple[SweepFix | None, int]:
     """Local features of the query turned to ``h``'s heading against the window ``h`` says it covers, described
     at the query's own scale; a :class:`SweepFix` when the alignment has ``min_inliers`` and lands within
@@ -111,18 +112,21 @@ def confirm(
 
     Two turns are tried: the exact one, then (if it fails) the nearest quarter turn, which is lossless. On small
     5 m/px NAIP crops the resampling of an exact turn left 3-6 inliers where the unresampled query, 14-36° off,
-    had 48-104; on levir-tx the exact turn is the stronger one."""
-    fix, n = _confirm_turned(reranker, map_, h, reach_m, min_inliers, upright(image, h.angle))
+    had 48-104; on levir-tx the exact turn is the stronger one. The learned matcher runs only on pairs whose
+    cheap screen finds ``screen_min`` inliers."""
+    fix, n = _confirm_turned(reranker, map_, h, reach_m, (min_inliers, screen_min), upright(image, h.angle))
     if fix is not None:
         return fix, n
     k = round(h.angle / 90.0) % 4
     turned = np.ascontiguousarray(np.rot90(image, k))
-    fix2, n2 = _confirm_turned(reranker, map_, h, reach_m, min_inliers, (turned, valid_mask(turned)))
+    fix2, n2 = _confirm_turned(reranker, map_, h, reach_m, (min_inliers, screen_min), (turned, valid_mask(turned)))
     return fix2, max(n, n2)
 
 
-def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, min_inliers: int, turned):
-    """One confirmation of ``h`` with the query already turned: ``turned`` = (image, mask of its own pixels)."""
+def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, floors: tuple[int, int], turned):
+    """One confirmation of ``h`` with the query already turned: ``turned`` = (image, mask of its own pixels);
+    ``floors`` = (inliers an alignment needs, screen inliers the learned matcher needs)."""
+    min_inliers, screen_min = floors
     up, mask = turned
     size = (up.shape[1], up.shape[0])
     window = footprint_window(map_, h, size)
@@ -136,6 +140,8 @@ def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, min_inliers: 
     wf = extract(reranker.extractor, window.image, w_side, 0, mask=window.valid)
     # the cheap screen first (mutual nearest neighbours + RANSAC); the learned matcher only when it is not clear
     n, H, _n_matches, _vis = reranker.screen_pair(qf, wf)
+    if n < screen_min:
+        return None, n
     if conf["accept_screen"] is None or n < conf["accept_screen"]:
         n, H, _n_matches, _vis = reranker.match_pair(qf, wf)
     a = align(H, n, size, window.tile, (map_.width, map_.height), min_inliers)
@@ -146,14 +152,15 @@ def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, min_inliers: 
     return (SweepFix(a, n, h, d, 0) if d <= reach_m else None), n
 
 
-def accept_fix(locator: SweepLocator, reranker, image: np.ndarray, priors=None) -> tuple[SweepFix, str] | None:
+def accept_fix(locator: SweepLocator, reranker, image: np.ndarray, priors=None):
     """The first of the sweep's best ``confirm`` candidates that local features or structure confirm, and why it
-    was accepted; None when none is.
+    was accepted: (fix, why); (None, why not) when another candidate far away is confirmed too (a repeated
+    pattern); None when none is.
 
     The rule: the query, turned and scaled as the candidate says, aligns on the candidate's map window with at
     least ``confirm_inliers`` inliers and within max(25 m, 10 map px) of the candidate. Over the shared sets,
     windows that do not contain the query's ground gave 0-15 inliers (the same search where the query is not),
-    right ones 14-118; an alignment on a window that only overlaps the query's ground lands at the true place,
+    right ones 14-118, but a repeated field 542 m away 32 (hence the rival test); an alignment on a window that only overlaps the query's ground lands at the true place,
     away from its candidate, and is refused by the agreement test. When local features find too little, the
     candidate's structure is checked instead (aeroloc.localization.structure_check)."""
     res = locator.search(image, priors)
@@ -161,16 +168,36 @@ def accept_fix(locator: SweepLocator, reranker, image: np.ndarray, priors=None) 
         return None
     c = locator.conf
     reach = max(25.0, 10.0 * locator.map_gsd)
-    for rank, h in enumerate(res.candidates[: c["confirm"]]):
-        fix, n = confirm(reranker, locator.map, image, h, reach, c["confirm_inliers"])
+    cands = res.candidates[: c["confirm"]]
+    for rank, h in enumerate(cands):
+        fix, n = confirm(reranker, locator.map, image, h, reach, c["confirm_inliers"], c["confirm_screen_min"])
         if fix is not None:
+            why = f"confirmed by {n} local-feature inliers, {fix.agreement_m:.1f} m from candidate {rank + 1}"
             fix = SweepFix(fix.alignment, fix.inliers, fix.hypothesis, fix.agreement_m, rank)
-            return fix, f"confirmed by {n} local-feature inliers, {fix.agreement_m:.1f} m from candidate {rank + 1}"
-        s = confirm_structure(locator.map, image, h, reach, c) if c["structure"] else None
-        if s is not None:
-            fix = SweepFix(Alignment("localized", s.lat, s.lon), n, h, s.agreement_m, rank)
+        else:
+            s = confirm_structure(locator.map, image, h, reach, c) if c["structure"] else None
+            if s is None:
+                continue
+            fix = SweepFix(Alignment("localized", s.lat, s.lon), 0, h, s.agreement_m, rank)
             why = f"structure confirmed: score {s.score:.2f}, ratio {s.ratio:.2f}, {s.agreement_m:.1f} m from candidate {rank + 1}"
-            return fix, why
+        rival = _rival(locator, reranker, image, fix, cands[rank + 1 :], reach)
+        return (fix, why) if rival is None else (None, rival)
+    return None
+
+
+def _rival(locator: SweepLocator, reranker, image, fix: SweepFix, others, reach_m: float) -> str | None:
+    """Why ``fix`` is ambiguous, or None: another candidate far from it (> 2 reaches) is confirmed by local
+    features (exact turn) with at least 1/``rival_margin`` of its inliers (a structural fix: with any). Two
+    far-apart places that both match are a repeated pattern, not a fix."""
+    c = locator.conf
+    floors = (c["confirm_inliers"], c["confirm_screen_min"])
+    for h in others:
+        if fix.hypothesis.distance(h) * locator.map_gsd <= 2 * reach_m:
+            continue
+        rival, n = _confirm_turned(reranker, locator.map, h, reach_m, floors, upright(image, h.angle))
+        if rival is not None and n * c["rival_margin"] >= fix.inliers:
+            apart = fix.hypothesis.distance(h) * locator.map_gsd
+            return f"{AMBIGUOUS} ({fix.inliers} and {n} local-feature inliers, {apart:.0f} m apart)"
     return None
 
 

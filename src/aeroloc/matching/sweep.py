@@ -49,7 +49,13 @@ SWEEP_DEFAULTS = {
     "exclusion": 0.5,  # candidates are distinct when farther apart than this many footprints
     "max_map_px": 40_000_000,
     "confirm": 2,  # candidates offered to the local-feature confirmation (aeroloc.localization.sweep_stage)
-    "confirm_inliers": 20,  # inliers a confirmation needs (windows without the query's ground: <= 15)  # a larger map is not swept whole (the caller sweeps a part, or skips)
+    "confirm_inliers": 20,  # inliers a confirmation needs (windows without the query's ground: mostly <= 15)
+    # the learned matcher runs only when the cheap screen finds this many: over 34 candidates of levir-tx and
+    # szada-hu, right windows screened 13-115 (but one, matched to 16 < 20 anyway), wrong ones 5-38
+    "confirm_screen_min": 10,
+    # a confirmed candidate is kept only when no other candidate far from it confirms with at least 1/this
+    # of its inliers: on szada-hu farmland a field 542 m from the truth gave 32 inliers, the truth 21
+    "rival_margin": 2.0,
 }
 LEVEL_RATIO = 2 ** (1 / 3)  # between pyramid levels
 FFT_WORKERS = 1  # one thread: the per-query work is small and the machine's cores serve other queries

@@ -240,6 +240,21 @@ def test_grid_expansion(tmp_path):
     assert expand(load_experiment(write_yaml(root, base_doc(zooms=[1.0, 2.0]), "f.yaml")))[0].key() == keys[0]
 
 
+def test_a_changed_sweep_default_does_not_reuse_old_results(tmp_path, monkeypatch):
+    from aeroloc.localization import structure_check
+    from aeroloc.matching import sweep
+
+    root = make_project(tmp_path)
+    configs = expand(load_experiment(write_yaml(root, base_doc())))
+    before = [c.key() for c in configs]
+    monkeypatch.setitem(sweep.SWEEP_DEFAULTS, "confirm_inliers", 25)
+    after = [c.key() for c in configs]
+    monkeypatch.setitem(structure_check.STRUCTURE_DEFAULTS, "structure_min_ratio", 1.7)
+    again = [c.key() for c in configs]
+    for c, b, a, g in zip(configs, before, after, again, strict=True):
+        assert (b != a != g) if c.reranker else (b == a == g)  # retrieval-only configurations never sweep
+
+
 def test_query_limit_is_an_evenly_spaced_subset_and_part_of_the_key(tmp_path):
     assert sample_queries(list(range(120)), 30) == list(range(0, 120, 4))
     assert sample_queries(list(range(57)), 19) == list(range(0, 57, 3))

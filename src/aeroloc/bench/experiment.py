@@ -174,6 +174,10 @@ class Config:
             from aeroloc.matching.registry import rerank_conf
 
             parts.append({"rerank_conf": rerank_conf(self.reranker)})
+            # and the sweep's (it runs with a re-ranker to confirm its candidates), likewise
+            from aeroloc.localization.options import LocalizeOptions
+
+            parts.append({"sweep": LocalizeOptions().sweep_conf()})
         return config_key(*parts)
 
     def label(self) -> str:

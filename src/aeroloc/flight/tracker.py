@@ -326,6 +326,8 @@ class Tracker:
         if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
             loc = self.localizer(ref.name, image, priors=priors)
             pose = self._pose_of(loc, size) if loc.localized else None
+            if pose is None and loc.localized:  # a fix without a turn or scale (the sweep's): found in a window
+                pose = self._pose_at(loc, image, priors)
             status = loc.status or status
         if pose is None:
             return self._point(ref, "lost", note + status)
@@ -392,6 +394,19 @@ class Tracker:
         if d is None:
             return None, "not localized: no distinct dense match over the map"
         return pose_from_dense(d, self.gsd), d.status()
+
+    def _pose_at(self, loc, image, priors: Priors) -> Pose | None:
+        """The pose of a global fix that gives a position only: the frame matched in a small window around it at
+        every heading the prior allows (all when none) and the known or carried ground resolution."""
+        cal = self.calibration
+        scale = priors.gsd_m / self.gsd if priors.gsd_m is not None else cal.scale if cal is not None else None
+        if scale is None:
+            return None
+        col, row = self.map.latlon_to_pixel(loc.lat, loc.lon)
+        angles = priors.heading_search() or tuple(range(-180, 180, 6))
+        m = self.cfg.window.sigma_k
+        fix = self.matcher(image, Pose(float(col), float(row), 0.0, scale), 25.0 / m / self.gsd, angles)
+        return None if fix is None else Pose(fix.x, fix.y, fix.turn_deg, scale)
 
     def _pose_of(self, loc, size) -> Pose | None:
         """The pose a global fix gives: centre from its lat/lon, turn and scale from the dense match or the

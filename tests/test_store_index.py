@@ -360,17 +360,27 @@ def test_index_filled_chunk_by_chunk_from_the_store_is_memory_mapped(tmp_path, f
     assert (got[:, 0] == np.arange(50)).mean() >= 0.9  # a stored vector finds itself first
 
 
-def test_exact_index_streamed_to_disk_is_the_file_faiss_writes(tmp_path):
-    """The Flat index is written chunk by chunk without being held in RAM: the file has exactly the bytes faiss
-    writes for the same index built in memory, and reads back (memory-mapped) with the same answers."""
+def test_exact_index_streamed_to_disk_is_the_file_faiss_writes(tmp_path, monkeypatch):
+    """The Flat index is written chunk by chunk without being held in RAM (faiss never gets the rows): the file
+    has exactly the bytes faiss writes for the same index built in memory, and reads back (memory-mapped) with
+    the same answers."""
     import faiss
 
+    from aeroloc.retrieval import index as index_mod
     from aeroloc.retrieval.index import build_index_from_store
+
+    def no_add(self, x):
+        raise AssertionError("the exact index was filled in RAM")
+
+    monkeypatch.setattr(faiss.IndexFlat, "add", no_add)
+    monkeypatch.setattr(faiss.IndexFlatIP, "add", no_add)
+    assert index_mod.build_index_from_store is build_index_from_store
 
     x = unit_rows(1000, 48, seed=3).astype(np.float16)
     np.save(tmp_path / "d.npy", x)
     (tmp_path / "index.faiss.ivfdata").write_bytes(b"stale")  # an earlier IVF build's lists: removed
     assert build_index_from_store(tmp_path / "d.npy", tmp_path / "index.faiss", "Flat", chunk=300) == "Flat"
+    monkeypatch.undo()
     want = faiss.serialize_index(build_index(x.astype(np.float32), "Flat")).tobytes()
     assert (tmp_path / "index.faiss").read_bytes() == want
     assert not (tmp_path / "index.faiss.ivfdata").exists()

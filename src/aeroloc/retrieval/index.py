@@ -220,7 +220,8 @@ def build_index_from_store(
     except RuntimeError as exc:
         raise AerolocError(f"faiss index '{factory}' cannot be built for dim {d}: {str(exc).splitlines()[0]}") from None
     _ivfdata(path).unlink(missing_ok=True)
-    if type(faiss.downcast_index(index)) is faiss.IndexFlatIP:
+    flat = faiss.downcast_index(index)
+    if type(flat) in (faiss.IndexFlat, faiss.IndexFlatIP) and flat.metric_type == faiss.METRIC_INNER_PRODUCT:
         _write_flat(npy, path, n, d, chunk)
         return factory
     if not index.is_trained:

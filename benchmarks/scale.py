@@ -142,6 +142,7 @@ def recall_factories(n: int) -> list[tuple[str, dict]]:
 
 
 def _set_params(index, params: dict) -> None:
+    """Search breadth of a loaded index (the same IVF or HNSW index is measured at several)."""
     import faiss
 
     if "nprobe" in params:
@@ -164,6 +165,7 @@ def _set_queries(db, model, folders) -> np.ndarray:
 
 
 def _recall(got: np.ndarray, want: np.ndarray) -> tuple[float, float]:
+    """(recall@1, recall@10): the exact top-1 found first; the share of the exact top-10 in the returned 10."""
     return float(np.mean(got[:, 0] == want[:, 0])), float(
         np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)])
     )

@@ -146,6 +146,7 @@ def _train(index, npy: Path, n: int) -> None:
 
 
 def _train_on(index, x: np.ndarray) -> None:
+    """``index.train(x)`` with faiss's errors (too few points for the lists …) as one-line AerolocErrors."""
     try:
         index.train(x)
     except RuntimeError as exc:

@@ -37,7 +37,7 @@ def add_arguments(p):
     p.add_argument(
         "--index",
         default="auto",
-        help="faiss factory string (default auto: Flat under 1e5 tiles, else PCA256,IVF<n>,SQ8; e.g. HNSW32)",
+        help="faiss factory string (default auto: Flat under 1e5 tiles, else HNSW32,SQ8; e.g. PCA256,IVF4096,SQ8)",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     p.add_argument("--batch-size", type=int, default=16)

@@ -109,6 +109,7 @@ class BaselineScale:
         self.min_m, self.gain, self.max_step = min_m, gain, max_step
         self.odo = (0.0, 0.0)  # the chain's position, metres (odometry steps only)
         self.marks: list[tuple[tuple[float, float], tuple[float, float]]] = []  # (chain, fix) at good fixes
+        self.checked = False  # a baseline found the scale within 2 % (until a global fix sets it anew)
 
     def moved(self, dx: float, dy: float) -> None:
         self.odo = (self.odo[0] + dx, self.odo[1] + dy)
@@ -127,6 +128,7 @@ class BaselineScale:
                 if d_odo <= 0:
                     return None
                 k = (d_fix / d_odo) ** self.gain
+                self.checked = abs(d_fix / d_odo - 1) < 0.02
                 return min(1 + self.max_step, max(1 - self.max_step, k))
         self.marks = self.marks[-63:] + [(self.odo, (x, y))]
         return None

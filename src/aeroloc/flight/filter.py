@@ -27,6 +27,8 @@ class FilterConfig:
     coast_share: float = 0.5  # coasting: sigma grows by this share of the speed bound per second
     vo_rel: float = 0.02  # odometry: relative error of a step's length (with a height or the baseline scale: NAIP
     # steps 0.5-1 % off; 0.03 let biased fixes drag the track, 0.01 let the scale's drift through)
+    vo_rel_unchecked: float = 0.04  # ... while the scale is a global fix's or carried over a gap, unchecked by a
+    # baseline (NAIP, after an outage in which the aircraft climbed: +4 % and 3° off, the track lagged 10-13 m)
     vo_abs_m: float = 0.5  # odometry: error added per step, metres
     fix_sigma_m: float = 5.0  # a windowed fix's error, metres (at least one map pixel)
     global_sigma_m: float = 5.0
@@ -75,9 +77,10 @@ class PositionFilter:
     def lose(self) -> None:
         self.est, self.rejects, self.misses = None, 0, 0
 
-    def predict_odometry(self, dx: float, dy: float, dt: float, turn_deg: float = 0.0) -> None:
+    def predict_odometry(self, dx: float, dy: float, dt: float, turn_deg: float = 0.0, checked: bool = True) -> None:
         """Move by an odometry step (metres) in which the frame turned by ``turn_deg`` (the content's turn, the
-        project's convention: the opposite of the aircraft's); the step also refreshes velocity and turn rate."""
+        project's convention: the opposite of the aircraft's); the step also refreshes velocity and turn rate.
+        ``checked``: whether the scale the step was measured at is confirmed (a height, a baseline)."""
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
         d = math.hypot(dx, dy)
@@ -85,7 +88,7 @@ class PositionFilter:
             self.predict_coast(dt)
             return
         e.x, e.y = e.x + dx, e.y + dy
-        e.sigma = math.hypot(e.sigma, c.vo_rel * d + c.vo_abs_m)
+        e.sigma = math.hypot(e.sigma, (c.vo_rel if checked else c.vo_rel_unchecked) * d + c.vo_abs_m)
         if dt > 0:  # the old velocity turned with the aircraft, the step's chord by half its turn (an arc's end)
             a = -math.radians(turn_deg)
             ox, oy = _turned(e.vx, e.vy, a)

@@ -191,7 +191,8 @@ class Tracker:
             new = self.pose.moved(step.A, size)
             before = (self.filter.est.x, self.filter.est.y)
             turn = (new.turn_deg - self.pose.turn_deg + 180.0) % 360.0 - 180.0
-            self.filter.predict_odometry((new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd, dt, turn)
+            dx, dy = (new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd
+            self.filter.predict_odometry(dx, dy, dt, turn, self.metric or self.baseline.checked)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
             self.pose = new if moved else self.pose
             if moved:
@@ -335,6 +336,7 @@ class Tracker:
         self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
         self.rejected.clear()
         self.baseline.broken()
+        self.baseline.checked = False
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
 

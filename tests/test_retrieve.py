@@ -195,6 +195,12 @@ def test_localize_run_signature_covers_rotations(db, naip_dev, tmp_path, monkeyp
     assert loc.localize_queries(db, qs, out, opts(1), **kw) == first  # same configuration: cached
     with pytest.raises(Boom):
         loc.localize_queries(db, qs, out, opts(4), **kw)
+    # the same settings with other code (another hash of the pipeline's source) run again too
+    import aeroloc.localization.options as options
+
+    monkeypatch.setattr(options, "code_identity", lambda: "other-code")
+    with pytest.raises(Boom):
+        loc.localize_queries(db, qs, out, opts(1), **kw)
 
 
 def aeroloc(*args) -> subprocess.CompletedProcess:

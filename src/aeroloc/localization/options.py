@@ -6,8 +6,10 @@ one message, before any file is touched, wherever the options come from.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 from aeroloc.core.errors import AerolocError
@@ -115,8 +117,24 @@ class LocalizeOptions:
             **({"priors": priors, "dense": self.dense_conf()} if priors else {}),
             **({"sweep": self.sweep_conf()} if self.sweep and self.rerank else {}),
             **({"min_confidence": self.min_confidence} if self.min_confidence != 0.5 else {}),
+            code=code_identity(),
         )
         return json.dumps(kw, sort_keys=True, default=str)
 
     def describe(self) -> dict:
         return asdict(self)
+
+
+@functools.cache
+def code_identity() -> str:
+    """A hash of the source of every package a localization's result depends on: a results file written by other
+    code is neither resumed nor reused (a changed acceptance rule with unchanged settings had reused old fixes)."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha1()
+    for pkg in ("core", "localization", "maps", "matching", "retrieval"):
+        for f in sorted((root / pkg).rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]

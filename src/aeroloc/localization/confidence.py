@@ -41,12 +41,12 @@ class StageModel:
         return max(0.25 * map_gsd, self.sigma0_m + self.sigma_px * map_gsd)
 
 
-# fitted by benchmarks/calibrate.py on the atlas runs of 2026-12-01/02 (290 fixes, 19 query sets; see README)
+# fitted by benchmarks/calibrate.py on the atlas runs of 2026-12-02 (199 fixes, 19 query sets of 12; see README)
 MODELS: dict[str, StageModel] = {
-    "cascade": StageModel(a=2.66, b=0.0, sigma0_m=0.903, sigma_px=0.645),
-    "sweep": StageModel(a=-2.987, b=1.578, sigma0_m=0.814, sigma_px=0.551),
-    # provisional, from the structure check's own measurement (69 accepted sweep candidates, 6 sets x 3 modes)
-    "structure": StageModel(a=0.635, b=3.339, sigma0_m=1.062, sigma_px=0.718),
+    "cascade": StageModel(a=2.759, b=0.0, sigma0_m=1.035, sigma_px=0.585),
+    "sweep": StageModel(a=-6.524, b=2.414, sigma0_m=0.804, sigma_px=0.592),
+    # 6 structural fixes in the atlas (all within t): a cautious fit; refit when more are measured
+    "structure": StageModel(a=1.095, b=0.945, sigma0_m=2.664, sigma_px=0.792),
     # no dense-stage fix in the atlas (it runs only with --query-gsd): a neutral model, not a fitted one
     "dense": StageModel(a=2.0, b=0.0, sigma0_m=1.0, sigma_px=0.5),
 }

@@ -13,6 +13,7 @@ usage: python benchmarks/localize_speed.py [--n 12] [--sets levir-any,szada-any,
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import time
 from pathlib import Path
@@ -64,9 +65,18 @@ def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
         "within_t": hits / len(qs),
         "wrong": wrong,
         "median_s": statistics.median(cpu),
-        "p90_s": cpu[int(0.9 * (len(cpu) - 1))],
+        "p90_s": cpu[math.ceil(0.9 * (len(cpu) - 1))],
         "stages": {s: statistics.median(v) for s, v in stages.items()},
     }
+
+
+def print_table(header: list[str], sets: list[str], modes: list[str], row) -> None:
+    """A markdown table with a row ``row(set, mode)`` (its cells) per set x prior mode, printed as it is measured."""
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for name in sets:
+        for mode in modes:
+            print("| " + " | ".join(row(name, mode)) + " |", flush=True)
 
 
 def main() -> int:
@@ -83,17 +93,21 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    print("| set | priors | n | within t | wrong | CPU s/query median | p90 | stage medians (s) |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name in args.sets.split(","):
-        for mode in args.modes.split(","):
-            r = run_set(name, mode, args.n, args.cache, dbs)
-            st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items() if v >= 0.005)
-            print(
-                f"| {r['set']} | {r['priors']} | {r['n']} | {r['within_t']:.2f} | {r['wrong']} | "
-                f"{r['median_s']:.2f} | {r['p90_s']:.2f} | {st} |",
-                flush=True,
-            )
+
+    def row(name: str, mode: str) -> list[str]:
+        r = run_set(name, mode, args.n, args.cache, dbs)
+        st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items() if v >= 0.005)
+        cells = (r["within_t"], r["wrong"], r["median_s"], r["p90_s"])
+        return [
+            r["set"],
+            r["priors"],
+            str(r["n"]),
+            *(f"{c:.2f}" if isinstance(c, float) else str(c) for c in cells),
+            st,
+        ]
+
+    header = ["set", "priors", "n", "within t", "wrong", "CPU s/query median", "p90", "stage medians (s)"]
+    print_table(header, args.sets.split(","), args.modes.split(","), row)
     return 0
 
 

@@ -87,6 +87,8 @@ def summary(rows: list[dict], n: int, conf: dict) -> dict:
 
 
 def main() -> int:
+    from localize_speed import print_table  # benchmarks/ is on sys.path when a script of it runs
+
     from aeroloc.localization.structure_check import STRUCTURE_DEFAULTS
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -97,16 +99,14 @@ def main() -> int:
     print(
         f"threshold: ratio >= {STRUCTURE_DEFAULTS['structure_min_ratio']}, score >= {STRUCTURE_DEFAULTS['structure_min_score']}"
     )
-    print("| set | priors | n | within t (check alone) | wrong | null: top ratio | right: median ratio |")
-    print("|---|---|---|---|---|---|---|")
-    for name in args.sets.split(","):
-        for mode in args.modes.split(","):
-            s = summary(candidates(name, mode, args.n), args.n, STRUCTURE_DEFAULTS)
-            print(
-                f"| {name} | {mode} | {args.n} | {s['within_t']:.2f} | {s['wrong']} | {s['null_max']:.2f} | "
-                f"{s['right_median']:.2f} |",
-                flush=True,
-            )
+
+    def row(name: str, mode: str) -> list[str]:
+        s = summary(candidates(name, mode, args.n), args.n, STRUCTURE_DEFAULTS)
+        figures = (s["within_t"], s["wrong"], s["null_max"], s["right_median"])
+        return [name, mode, str(args.n), *(f"{f:.2f}" if isinstance(f, float) else str(f) for f in figures)]
+
+    header = ["set", "priors", "n", "within t (check alone)", "wrong", "null: top ratio", "right: median ratio"]
+    print_table(header, args.sets.split(","), args.modes.split(","), row)
     return 0
 
 

@@ -185,11 +185,10 @@ class Localizer:
         repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22 inliers and the cascade
         took the wrong one (44 verified inliers; the right one 22). A far tile whose screen reaches half the
         best's is verified by the matcher first."""
-        from aeroloc.matching.sweep import SWEEP_DEFAULTS
-
         reach = max(25.0, 10.0 * (self.map_gsd or 0.0))
         # a rival is a place the sweep would confirm on its own (its inlier floor), within its margin of the best
-        floor, margin = SWEEP_DEFAULTS["confirm_inliers"], SWEEP_DEFAULTS["rival_margin"]
+        conf = self.options.sweep_conf()
+        floor, margin = conf["confirm_inliers"], conf["rival_margin"]
         verified = False
         for c in rr.ranked:
             if c is best or c.H is None:

@@ -23,6 +23,12 @@ class Alignment:
         return self.status == "localized"
 
 
+def reach_m(map_gsd: float | None) -> float:
+    """How far apart two placements of one query may land and still be one place: max(25 m, 10 map px) (the
+    agreement radius of the dense, sweep and structure confirmations, and the rival test's unit)."""
+    return max(25.0, 10.0 * (map_gsd or 0.0))
+
+
 def project(H: np.ndarray, x: float, y: float) -> tuple[float, float] | None:
     """(x, y) through ``H``; None when it goes to infinity."""
     xy, w = project_points(H, [(x, y)])

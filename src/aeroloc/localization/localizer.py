@@ -8,7 +8,7 @@ from functools import cached_property
 
 import numpy as np
 
-from aeroloc.localization.alignment import Alignment, align
+from aeroloc.localization.alignment import Alignment, align, reach_m
 from aeroloc.localization.options import LocalizeOptions
 from aeroloc.localization.results import AMBIGUOUS, Localization
 from aeroloc.retrieval.database import Database
@@ -98,7 +98,7 @@ class Localizer:
         if not a.localized:
             return False
         out.inliers = best.score
-        reach = max(25.0, 10.0 * self.dense.map_gsd)
+        reach = reach_m(self.dense.map_gsd)
         return float(geo.geodesic_distance(d.lat, d.lon, a.lat, a.lon)) <= reach
 
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
@@ -185,7 +185,7 @@ class Localizer:
         repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22 inliers and the cascade
         took the wrong one (44 verified inliers; the right one 22). A far tile whose screen reaches half the
         best's is verified by the matcher first."""
-        reach = max(25.0, 10.0 * (self.map_gsd or 0.0))
+        reach = reach_m(self.map_gsd)
         # a rival is a place the sweep would confirm on its own (its inlier floor), within its margin of the best
         conf = self.options.sweep_conf()
         floor, margin = conf["confirm_inliers"], conf["rival_margin"]
@@ -193,7 +193,7 @@ class Localizer:
         for c in rr.ranked:
             if c is best or c.H is None:
                 continue
-            if not verified and c.inliers < 0 and 2 * c.screen > best.screen and self._far(image, c, a, reach):
+            if not verified and c.inliers < 0 and margin * c.screen > best.screen and self._far(image, c, a, reach):
                 verified = True  # the strongest such tile only: one more matcher run at most
                 tf = self.reranker.tile_features([c.tile_id])[c.tile_id]
                 if c.rot_k in rr.query:

@@ -19,7 +19,7 @@ import numpy as np
 
 from aeroloc.core import geo
 from aeroloc.core.images import valid_mask
-from aeroloc.localization.alignment import Alignment, align
+from aeroloc.localization.alignment import Alignment, align, reach_m
 from aeroloc.localization.results import AMBIGUOUS
 from aeroloc.localization.structure_check import STRUCTURE_DEFAULTS, confirm_structure
 from aeroloc.localization.window import Window
@@ -176,7 +176,7 @@ def accept_fix(locator: SweepLocator, reranker, image: np.ndarray, priors=None):
     if res is None:
         return None
     c = locator.conf
-    reach = max(25.0, 10.0 * locator.map_gsd)
+    reach = reach_m(locator.map_gsd)
     cands = res.candidates[: c["confirm"]]
     for rank, h in enumerate(cands):
         fix, n = confirm(reranker, locator.map, image, h, reach, c["confirm_inliers"], c["confirm_screen_min"])

@@ -191,8 +191,10 @@ class MutualNNMatcher:
 def mutual_nn(d0, d1, min_similarity: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) index pairs that are each other's most similar descriptor, and their cosine similarities.
 
-    numpy on purpose: for 2048 x 2048 x 64 it takes ~13 ms on one core, torch's CPU reductions ~30 ms; the
-    reverse direction is a second matrix product because a column-wise argmax is ~40x slower than a row-wise one.
+    numpy on purpose, one matrix product: a pair is mutual when a row's best similarity is also its column's
+    maximum (a column-wise max is a fast reduction; a column-wise argmax is ~30x slower, and a second product for
+    the reverse direction doubled the cost). 2048 x 2048 x 64 on one core: ~10 ms, against ~18 ms with two
+    products and ~48 ms with torch's CPU reductions.
     """
     if len(d0) == 0 or len(d1) == 0:
         return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)
@@ -202,8 +204,10 @@ def mutual_nn(d0, d1, min_similarity: float = 0.0) -> tuple[np.ndarray, np.ndarr
     b = b / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-8)
     sim = a @ b.T
     nn01 = sim.argmax(1)
-    nn10 = (b @ a.T).argmax(1)
     idx0 = np.arange(len(a))
     best01 = sim[idx0, nn01]
-    keep = (nn10[nn01] == idx0) & (best01 > min_similarity)
+    keep = np.flatnonzero((best01 >= sim.max(0)[nn01]) & (best01 > min_similarity))
+    # exact ties: a column keeps its first row, as its argmax would
+    keep = keep[np.unique(nn01[keep], return_index=True)[1]]
+    keep.sort()
     return np.stack([idx0[keep], nn01[keep]], 1).astype(np.int64), best01[keep].astype(np.float32)

@@ -336,3 +336,110 @@ def test_tiles_csv_written_from_lists_has_the_bytes_of_the_dict_writer(which, na
         w.writerows(rows)
     assert len(rows) > 20
     assert (tmp_path / "db" / tiling.TILES_CSV).read_bytes() == (tmp_path / "want.csv").read_bytes()
+
+
+def test_tiles_csv_of_a_rotated_map_in_blocks_has_the_bytes_of_the_dict_writer(tmp_path, naip_map):
+    """A map whose transform turns (b, d != 0: no offset repeats along a grid row or column) and a grid
+    written a few rows at a time give the bytes of the per-tile dicts through csv.DictWriter."""
+    import rasterio
+    from affine import Affine
+
+    with rasterio.open(naip_map) as src:
+        data, crs, t = src.read(window=((0, 300), (0, 400))), src.crs, src.transform
+    cos, sin = math.cos(0.3), math.sin(0.3)
+    turned = Affine(t.a * cos, t.a * sin, t.c, t.a * sin, -t.a * cos, t.f)
+    path = tmp_path / "turned.tif"
+    profile = {"driver": "GTiff", "width": 400, "height": 300, "count": 3, "dtype": "uint8"}
+    with rasterio.open(path, "w", crs=crs, transform=turned, **profile) as dst:
+        dst.write(data)
+    m = open_map(path)
+    grid = TileGrid(m, 4, 0.5)
+    assert len(grid.rows) > 3 and len(grid.cols) > 3
+    for per_block in (len(grid.cols), 3 * len(grid.cols) + 1, 10**6):  # one grid row, 3 rows, all at once
+        got = "".join(grid.csv_chunks(tiles_per_chunk=per_block))
+        rows = [tiling.tile_row(t) for t in grid]
+        with open(tmp_path / "want.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=tiling.CSV_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        assert got.encode() == (tmp_path / "want.csv").read_bytes()
+    by_row = {}
+    for r in rows:
+        by_row.setdefault(r["row"], set()).add(r["c"])
+    assert all(len(v) > 1 for v in by_row.values()) and len({r["c"] for r in rows if r["col"] == 0}) > 1
+
+
+@pytest.fixture
+def hash_cache(tmp_path, monkeypatch):
+    """A private hash cache, and no settling age, so a test need not wait 2 s for a file to be cacheable."""
+    from aeroloc.maps import windows
+
+    monkeypatch.setenv("AEROLOC_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(windows, "HASH_CACHE_MIN_AGE_S", 0.0)
+    return windows
+
+
+def test_a_map_hashed_before_is_not_read_again_until_it_changes(tmp_path, naip_map, hash_cache, monkeypatch):
+    """The content hash of an unchanged map is reused (no pixels read); rewriting the file in place with the
+    same size, CRS and transform and then restoring its mtime is still refused: the cache key holds the ctime,
+    which writing sets and no call sets back."""
+    import os
+    import time
+
+    import rasterio
+
+    from aeroloc.maps.sources import GeoTiffMap
+    from aeroloc.maps.tilesource import TileSource
+
+    m = tmp_path / "map.tif"
+    with rasterio.open(naip_map) as src:  # uncompressed: a rewrite of the pixels keeps the file's size
+        profile = {**src.profile, "compress": None, "tiled": False}
+        with rasterio.open(m, "w", **profile) as dst:
+            dst.write(src.read())
+    with monkeypatch.context() as mp:  # changed within the settling age before the read: not cached
+        mp.setattr(hash_cache, "HASH_CACHE_MIN_AGE_S", 3600.0)
+        fresh = hash_cache.content_hash(open_map(m), TileGrid(open_map(m), 2, 0))
+    assert not hash_cache.hash_cache_dir().exists()
+    write_tiles(m, tmp_path / "db", zoom=2, overlap=0, progress=False)
+    assert load_info(tmp_path / "db")["map"]["content_sha1"] == fresh
+    assert len(list(hash_cache.hash_cache_dir().iterdir())) == 1
+
+    def no_read(*a, **k):
+        raise AssertionError("the map was read again")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(GeoTiffMap, "_read", no_read)
+        assert hash_cache.content_hash(open_map(m), TileGrid(open_map(m), 2, 0)) == fresh
+    TileSource(tmp_path / "db").image(0)
+    st = os.stat(m)
+    time.sleep(0.05)  # a later timestamp tick for the rewrite
+    with rasterio.open(m, "r+") as ds:
+        ds.write(255 - ds.read())
+    os.utime(m, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert (os.stat(m).st_size, os.stat(m).st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    with pytest.raises(AerolocError, match="pixels changed since the tile grid was made"):
+        TileSource(tmp_path / "db").image(0)
+
+
+def test_a_changed_raw_tile_of_a_folder_map_is_refused_after_caching(tmp_path, naip_map, hash_cache):
+    """A tile-folder map: its hash is cached after the first grid; overwriting one raw tile file (same size)
+    changes its ctime, so the next open hashes again and refuses."""
+    import os
+    import time
+
+    from aeroloc.maps.tilesource import TileSource
+
+    s = build_seed_folder(tmp_path / "seed", naip_map)
+    write_tiles(s.path, tmp_path / "db", zoom=2, overlap=0, progress=False)
+    write_tiles(s.path, tmp_path / "db2", zoom=3, overlap=0, progress=False)
+    assert len(list(hash_cache.hash_cache_dir().iterdir())) == 1  # one map, one entry for both grids
+    TileSource(tmp_path / "db").image(0)
+    raw = sorted(s.path.glob("tile_*.png"))[0]
+    data = bytearray(raw.read_bytes())
+    data[-20] ^= 0xFF  # inside the last chunk's CRC: same size, other bytes
+    st = os.stat(raw)
+    time.sleep(0.05)  # a later timestamp tick for the rewrite
+    raw.write_bytes(bytes(data))
+    os.utime(raw, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with pytest.raises(AerolocError, match="pixels changed since the tile grid was made"):
+        TileSource(tmp_path / "db").image(0)

@@ -13,9 +13,11 @@ corners are the outer pixel edges.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -185,22 +187,45 @@ class TileGrid:
             name, c, r, self.tile_w, self.tile_h, shifted(self.map.transform, c, r), self.map.crs, f"images/{name}.png"
         )
 
-    def table(self) -> list[list]:
-        """``tile_table(list(self))`` without making a Tile (an Affine each) per window: the same numbers, as
-        each transform's offset is the same float arithmetic as :func:`shifted`, done on arrays."""
+    def csv_chunks(self, tiles_per_chunk: int = 65_536) -> Iterator[str]:
+        """The text of tiles.csv (header first), a block of grid rows at a time: the bytes csv.writer gives for
+        ``tile_table(list(self))`` (tested), without a Tile, a dict or a list per window, and in memory one block
+        at a time (a country grid has 10^7 rows). Each tile's transform offset and corners are the same float
+        arithmetic as :func:`shifted` and :func:`_table`, done on arrays, and every number is formatted once per
+        distinct value (north-up, a transform offset repeats along its grid column or row)."""
         t, n_cols = self.map.transform, len(self.cols)
-        col = np.tile(np.asarray(self.cols, float), len(self.rows))
-        row = np.repeat(np.asarray(self.rows, float), n_cols)
-        ones = np.ones(len(col))
-        coefs = np.stack(
-            [t.a * ones, t.b * ones, t.a * col + t.b * row + t.c, t.d * ones, t.e * ones, t.d * col + t.e * row + t.f],
-            1,
-        )
-        ids = [f"r{i:03d}c{j:03d}" for i in range(len(self.rows)) for j in range(n_cols)]
-        cols, rows = [int(c) for c in self.cols] * len(self.rows), [int(r) for r in self.rows for _ in range(n_cols)]
-        w, h = np.full(len(col), float(self.tile_w)), np.full(len(col), float(self.tile_h))
-        fixed = [(self.tile_w, self.tile_h, c, r, self.map.crs) for c, r in zip(cols, rows)]
-        return _table(ids, [f"images/{x}.png" for x in ids], coefs, w, h, fixed, self.map.crs)
+        crs = _csv_cell(self.map.crs)
+        a, b, d, e = (repr(float(v)) for v in (t.a, t.b, t.d, t.e))
+        size = f"{self.tile_w},{self.tile_h}"
+        cid = [f"c{j:03d}" for j in range(n_cols)]
+        ccell = [str(int(c)) for c in self.cols]
+        cols = np.asarray(self.cols, float)
+        w, h = float(self.tile_w), float(self.tile_h)
+        yield ",".join(CSV_COLUMNS) + "\r\n"
+        step = max(1, tiles_per_chunk // n_cols)
+        for i0 in range(0, len(self.rows), step):
+            i1 = min(i0 + step, len(self.rows))
+            n = (i1 - i0) * n_cols
+            col = np.tile(cols, i1 - i0)
+            row = np.repeat(np.asarray(self.rows[i0:i1], float), n_cols)
+            c = t.a * col + t.b * row + t.c
+            f = t.d * col + t.e * row + t.f
+            zero = np.zeros(n)
+            xs = np.concatenate([t.a * zero + t.b * zero + c, t.a * w + t.b * h + c])
+            ys = np.concatenate([t.d * zero + t.e * zero + f, t.d * w + t.e * h + f])
+            lat, lon = geo.crs_to_latlon(xs, ys, self.map.crs)
+            lat, lon = np.asarray(lat, float).reshape(2, -1, n_cols), np.asarray(lon, float).reshape(2, -1, n_cols)
+            nine = "{:.9f}".format
+            cells = [_cells(x, nine) for x in (lat[0], lon[0], lat[1], lon[1])]
+            cells += [_cells(c.reshape(-1, n_cols), repr), _cells(f.reshape(-1, n_cols), repr)]
+            ids = [f"r{i:03d}{x}" for i in range(i0, i1) for x in cid]
+            rcell = [x for i in range(i0, i1) for x in [str(int(self.rows[i]))] * n_cols]
+            lines = [
+                f"{t_id},images/{t_id}.png,{tl_lat},{tl_lon},{br_lat},{br_lon},{size},{cc},{rc},{crs},{a},{b},{c_},"
+                f"{d},{e},{f_}\r\n"
+                for t_id, tl_lat, tl_lon, br_lat, br_lon, c_, f_, cc, rc in zip(ids, *cells, ccell * (i1 - i0), rcell)
+            ]
+            yield "".join(lines)
 
     def params(self) -> dict:
         """The grid as tiles.json holds it. Square grids keep the one-side keys (``base_px``, ``side_px``,
@@ -243,6 +268,28 @@ def _base_size(map_: Map, tile_m: float | None, base_px: float | None) -> tuple[
 def shifted(t: Affine, col: int, row: int) -> Affine:
     """``t`` composed with a translation by (col, row) pixels (spelled out: affine 3 deprecates ``*``)."""
     return Affine(t.a, t.b, t.a * col + t.b * row + t.c, t.d, t.e, t.d * col + t.e * row + t.f)
+
+
+def _csv_cell(text: str) -> str:
+    """``text`` as csv.writer writes it in a row of several cells (quoted if it holds a comma, quote or line
+    break: a WKT CRS does)."""
+    if not text:
+        return ""
+    buf = io.StringIO()
+    csv.writer(buf).writerow([text])
+    return buf.getvalue()[:-2]
+
+
+def _cells(v: np.ndarray, fmt) -> list[str]:
+    """``fmt`` of each value of the (rows, cols) array ``v`` in row-major order, formatted once per grid column
+    when every row holds the same values (bit for bit: 0.0 and -0.0 differ), once per row when every column
+    does, else once per value."""
+    bits = v.view(np.uint64)
+    if (bits == bits[:1]).all():
+        return [fmt(x) for x in v[0].tolist()] * len(v)
+    if (bits == bits[:, :1]).all():
+        return [s for x in v[:, 0].tolist() for s in [fmt(x)] * v.shape[1]]
+    return [fmt(x) for x in v.ravel().tolist()]
 
 
 # --- on-disk tile database ---------------------------------------------------------------------------------
@@ -309,6 +356,13 @@ def _table(ids, paths, tr: np.ndarray, w: np.ndarray, h: np.ndarray, fixed, crs:
         + [repr(v) for v in coefs[i]]
         for i in range(n)
     ]
+
+
+def write_grid_csv(path: Path, grid: TileGrid) -> None:
+    """tiles.csv of ``grid`` from :meth:`TileGrid.csv_chunks`, renamed into place when complete."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        for chunk in grid.csv_chunks():
+            f.write(chunk)
 
 
 def write_tiles_csv(path: Path, table: list[list]) -> None:
@@ -398,7 +452,7 @@ def write_tiles(
         rows, nbytes = _render(m, list(grid), out, progress)
     else:
         out.mkdir(parents=True, exist_ok=True)
-        rows, nbytes = grid.table(), 0
+        rows, nbytes = None, 0
     report = replace(
         report,
         map={**report.map, "content_sha1": map_reference(m, grid)["content_sha1"]},
@@ -406,7 +460,10 @@ def write_tiles(
         image_bytes=nbytes,
     )
     (out / TILES_JSON).write_text(json.dumps(report.to_json(), indent=1))
-    write_tiles_csv(out / TILES_CSV, rows)  # last: its presence marks a finished tile set
+    if rows is None:  # last: its presence marks a finished tile set
+        write_grid_csv(out / TILES_CSV, grid)
+    else:
+        write_tiles_csv(out / TILES_CSV, rows)
     (out / BUILDING_JSON).unlink(missing_ok=True)
     return report
 

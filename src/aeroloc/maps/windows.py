@@ -9,9 +9,14 @@ column span), so each block of the map is decoded once, not once per tile that o
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import hashlib
-from collections.abc import Iterator, Sequence
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
 from itertools import groupby
+from pathlib import Path
 
 import numpy as np
 
@@ -19,26 +24,93 @@ from aeroloc.core.errors import AerolocError
 from aeroloc.maps.sources import Map, open_map
 
 SAMPLE_WINDOWS = 16  # windows hashed into the map reference (cheap: a country map is never read in full to check)
+# a file's hash is cached only when it was last changed at least this long before it was read (see _cached)
+HASH_CACHE_MIN_AGE_S = 2.0
+RASTER_FILES = {".tif", ".tiff"}  # single-file rasters whose pixels come from that one file (a .vrt names others)
+
+
+def _spread(n: int, k: int) -> list[int]:
+    """Up to ``k`` evenly spaced positions of ``0 .. n - 1``, sorted, without repeats (``np.unique`` of the
+    same linspace: numpy 2 imports ``numpy.ma`` on the first ``np.unique``, ~30 ms)."""
+    return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n)).astype(int)})
 
 
 def content_hash(m: Map, tiles: Sequence) -> str:
     """SHA-1 of what the grid reads, sampled: the decoded pixels of up to ``SAMPLE_WINDOWS`` evenly spaced tiles
     of a raster (a COG decodes a window in ~1 ms), or the bytes of as many evenly spaced raw tile files of a tile
-    folder (decoding 1280 px PNGs to check would cost as much as the whole grid)."""
-    h = hashlib.sha1()
+    folder (decoding 1280 px PNGs to check would cost as much as the whole grid). Cached per file state
+    (:func:`_cached`): a map read before and not changed since is not read again."""
     cells = getattr(m, "cells", None)
     if cells is not None:
         files = [cells[k] for k in sorted(cells)]
-        for i in np.unique(np.linspace(0, len(files) - 1, min(SAMPLE_WINDOWS, len(files))).astype(int)):
-            h.update(files[int(i)].read_bytes())
+        files = [files[i] for i in _spread(len(files), SAMPLE_WINDOWS)]
+
+        def digest() -> str:
+            h = hashlib.sha1()
+            for f in files:
+                h.update(f.read_bytes())
+            return h.hexdigest()
+
+        return _cached("files", files, [], digest)
+    picked = [tiles[i] for i in _spread(len(tiles), SAMPLE_WINDOWS)] if len(tiles) else []
+
+    def pixels() -> str:
+        h = hashlib.sha1()
+        for t in picked:
+            rgb, _ = m.read(t.col, t.row, t.width, t.height)
+            h.update(np.ascontiguousarray(rgb).tobytes())
         return h.hexdigest()
-    if not tiles:
-        return h.hexdigest()
-    for i in np.unique(np.linspace(0, len(tiles) - 1, min(SAMPLE_WINDOWS, len(tiles))).astype(int)):
-        t = tiles[int(i)]
-        rgb, _ = m.read(t.col, t.row, t.width, t.height)
-        h.update(np.ascontiguousarray(rgb).tobytes())
-    return h.hexdigest()
+
+    path = Path(m.path)
+    if path.suffix.lower() not in RASTER_FILES:
+        return pixels()
+    # GDAL's sidecars (map.tif.msk, .aux.xml, .ovr) can change what is read: their states are part of the key
+    files = [path, *sorted(path.parent.glob(glob.escape(path.name) + ".*"))]
+    windows = [[t.col, t.row, t.width, t.height] for t in picked]
+    return _cached("raster-windows", files, windows, pixels)
+
+
+def hash_cache_dir() -> Path:
+    """``$AEROLOC_CACHE/map-hashes`` (default ``~/.cache/aeroloc/map-hashes``)."""
+    from aeroloc.core.weights import cache_dir
+
+    return cache_dir().parent / "map-hashes"
+
+
+def _file_states(files: Sequence[Path]) -> list[list[int]]:
+    """(size, mtime_ns, ctime_ns, inode, device) of each file. Writing a file or renaming another onto it sets
+    its ctime to now, and no system call sets a ctime back (``touch``/``os.utime`` set mtime, and ctime to now)."""
+    out = []
+    for f in files:
+        st = os.stat(f)
+        out.append([st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_dev])
+    return out
+
+
+def _cached(kind: str, files: Sequence[Path], extra: list, compute: Callable[[], str]) -> str:
+    """``compute()`` (a content hash of ``files``), remembered under the files' paths and states (size,
+    mtime, ctime, inode). An entry is stored only when every file's last change (mtime and ctime) was at least
+    ``HASH_CACHE_MIN_AGE_S`` before the read began and no state changed during it: a change that lands in the
+    same timestamp tick as the read could otherwise leave the state as it was (git's "racily clean" files)."""
+    try:
+        before = _file_states(files)
+    except OSError:
+        return compute()  # a missing file: let the read report it
+    from aeroloc.core.io import atomic_write_text, config_key
+
+    key = config_key(kind, [str(Path(f).resolve()) for f in files], before, extra)
+    entry = hash_cache_dir() / f"{key}.sha1"
+    with contextlib.suppress(OSError):
+        got = entry.read_text().strip()
+        if len(got) == 40:
+            return got
+    start_ns = time.time_ns()
+    digest = compute()
+    settled = start_ns - int(HASH_CACHE_MIN_AGE_S * 1e9)
+    if _file_states(files) == before and all(max(s[1], s[2]) < settled for s in before):
+        with contextlib.suppress(OSError):  # an unwritable cache only costs the next read
+            atomic_write_text(entry, digest)
+    return digest
 
 
 def map_reference(m: Map, tiles: Sequence) -> dict:
@@ -99,4 +171,4 @@ def read_windows(m: Map, tiles: Sequence) -> Iterator[np.ndarray]:
             yield np.ascontiguousarray(block[t.row - r0 : t.row - r0 + t.height, t.col - c0 : t.col - c0 + t.width])
 
 
-__all__ = ["content_hash", "map_reference", "open_checked", "read_windows"]
+__all__ = ["content_hash", "hash_cache_dir", "map_reference", "open_checked", "read_windows"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import shutil
 import subprocess
@@ -47,23 +48,48 @@ def aero_vloc_cut(seed: Path, zoom: float, overlap: float) -> int:
     return n
 
 
-def bench_tiling(work: Path) -> list[tuple]:
-    """tiles/s of the window database, the PNG database and aero-vloc's cut on a seed-format map."""
+def _best_s(fn, repeat: int) -> float:
+    """Seconds of the fastest of ``repeat`` calls of ``fn`` (the machine is shared: the least disturbed run)."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def bench_tiling(work: Path, repeat: int = 5) -> list[dict]:
+    """tiles/s of the window database, the PNG database and aero-vloc's cut on a seed-format map, best of
+    ``repeat`` runs each. The window database is timed three ways: the first call of the process (imports, the
+    first coordinate transformation, the map's content hash), later calls on a map whose hash is not cached
+    (``cold hash``: every raw file read and hashed), and on a map hashed before (``warm``: the cached hash)."""
+    import os
+
     sys.path.insert(0, str(REPO / "tests"))
+    os.environ["AEROLOC_CACHE"] = str(work / "cache")  # a private hash cache, emptied for the cold runs
     from _mapfolders import build_seed_folder
+    from aeroloc.maps import windows
     from aeroloc.maps.tilesource import TileSource
     from aeroloc.maps.tiling import write_tiles
 
     seed = build_seed_folder(work / "seed", NAIP, n_rows=2, n_cols=3, tile_w=1280, tile_h=1230, upsample=5).path
+    time.sleep(windows.HASH_CACHE_MIN_AGE_S + 0.1)  # files this new are never cached (racily clean)
     rows = []
-    for zoom, overlap in [(1.5, 0.5), (3, 0.75)]:
-        t0 = time.perf_counter()
+    for k, (zoom, overlap) in enumerate([(1.5, 0.5), (3, 0.75)]):
         n_av = aero_vloc_cut(seed, zoom, overlap)
-        av = n_av / (time.perf_counter() - t0)
-        shutil.rmtree(work / "win", ignore_errors=True)
-        t0 = time.perf_counter()
-        rep = write_tiles(seed, work / "win", zoom, overlap, progress=False)
-        win = rep.n_tiles / (time.perf_counter() - t0)
+        av_s = _best_s(lambda z=zoom, o=overlap: aero_vloc_cut(seed, z, o), repeat)
+
+        def windows_db(cold: bool, zoom=zoom, overlap=overlap):
+            shutil.rmtree(work / "win", ignore_errors=True)
+            if cold:
+                shutil.rmtree(work / "cache", ignore_errors=True)
+            return write_tiles(seed, work / "win", zoom, overlap, progress=False)
+
+        first_s = _best_s(lambda: windows_db(True), 1) if k == 0 else None
+        cold_s = _best_s(lambda: windows_db(True), repeat)
+        windows_db(False)
+        warm_s = _best_s(lambda: windows_db(False), repeat)
+        rep = windows_db(False)
         t0 = time.perf_counter()
         for _ in TileSource(work / "win").images(0, rep.n_tiles):
             pass
@@ -72,7 +98,23 @@ def bench_tiling(work: Path) -> list[tuple]:
         t0 = time.perf_counter()
         write_tiles(seed, work / "png", zoom, overlap, progress=False, write_images=True)
         png = rep.n_tiles / (time.perf_counter() - t0)
-        rows.append((f"seed 3x2 x 1280x1230, zoom {zoom}, overlap {overlap}", rep.n_tiles, win, read, png, n_av, av))
+        n = rep.n_tiles
+        rows.append(
+            {
+                "grid": f"seed 3x2 x 1280x1230, zoom {zoom}, overlap {overlap}",
+                "tiles": n,
+                "aero-vloc tiles": n_av,
+                "aero-vloc tiles/s": n_av / av_s,
+                "first call ms": None if first_s is None else first_s * 1000,
+                "cold hash ms": cold_s * 1000,
+                "warm ms": warm_s * 1000,
+                "cold hash x": (n / cold_s) / (n_av / av_s),
+                "warm x": (n / warm_s) / (n_av / av_s),
+                "first call x": None if first_s is None else (n / first_s) / (n_av / av_s),
+                "window reads tiles/s": read,
+                "PNG db tiles/s": png,
+            }
+        )
     return rows
 
 
@@ -132,19 +174,27 @@ RECALL_SETS = [
 ]
 
 
-def recall_factories(n: int) -> list[tuple[str, dict]]:
-    """(factory, search parameters) compared with exact Flat: auto's large-map shape (PCA256, IVF, SQ8), PCA to
-    more dimensions, IVF without PCA at growing nprobe, 8-bit codes scanned in full, and a graph (HNSW)."""
+def recall_factories(n: int, which: str = "all") -> list[tuple[str, dict]]:
+    """(factory, search parameters) compared with exact Flat. ``two-stage``: ``auto``'s large-map index (a PCA512
+    coarse HNSW over 8-bit codes, its candidates re-ranked exactly from the store) at 100-800 candidates, and
+    with PCA256; ``one-stage``: PCA + IVF, IVF without PCA at growing nprobe, the SQ8 scan, HNSW32,SQ8."""
+    from aeroloc.retrieval.index import COARSE
+
+    two = [(f"{COARSE},Rerank400", {"candidates": r}) for r in (100, 200, 400, 800)]
+    two += [("PCA256,L2norm,HNSW32,SQ8,Rerank400", {"candidates": 400})]
     nlist = int(2 ** round(np.log2(4 * np.sqrt(n))))
-    out = [(f"PCA256,IVF{nlist},SQ8", {"nprobe": 32}), (f"PCA1024,IVF{nlist},SQ8", {"nprobe": 32})]
-    out += [(f"IVF{nlist},SQ8", {"nprobe": p}) for p in (32, 128)]
-    return out + [("SQ8", {}), ("HNSW32,SQ8", {"efSearch": 64}), ("HNSW32,SQ8", {"efSearch": 256})]
+    one = [(f"PCA256,IVF{nlist},SQ8", {"nprobe": 32}), (f"PCA1024,IVF{nlist},SQ8", {"nprobe": 32})]
+    one += [(f"IVF{nlist},SQ8", {"nprobe": p}) for p in (32, 128)]
+    one += [("SQ8", {}), ("HNSW32,SQ8", {"efSearch": 64}), ("HNSW32,SQ8", {"efSearch": 256})]
+    return {"two-stage": two, "one-stage": one, "all": two + one}[which]
 
 
 def _set_params(index, params: dict) -> None:
     """Search breadth of a loaded index (the same IVF or HNSW index is measured at several)."""
     import faiss
 
+    if "candidates" in params:
+        index.candidates = params["candidates"]
     if "nprobe" in params:
         faiss.extract_index_ivf(index).nprobe = params["nprobe"]
     if "efSearch" in params:
@@ -171,7 +221,9 @@ def _recall(got: np.ndarray, want: np.ndarray) -> tuple[float, float]:
     )
 
 
-def bench_recall_set(work: Path, name: str, map_path: Path, tile_m: float, overlap: float, folders) -> list[dict]:
+def bench_recall_set(
+    work: Path, name: str, map_path: Path, tile_m: float, overlap: float, folders, which: str = "all"
+) -> list[dict]:
     """Build the set's real descriptors (exact index), then each factory from the same store: training+fill
     seconds, ms/query and recall@1/@10 of the exact top-10, for the real queries and for 300 tiles as queries."""
     from aeroloc.maps.tiling import write_tiles
@@ -188,11 +240,12 @@ def bench_recall_set(work: Path, name: str, map_path: Path, tile_m: float, overl
     queries = {"queries": _set_queries(db, model, folders).astype(np.float32), "tiles": tiles_q}
     want = {k: search(exact, q, 10)[1] for k, q in queries.items()}
     rows, built, build_s = [], None, 0.0
-    for factory, params in recall_factories(store.n):
-        path = work / "recall.faiss"
+    np.save(folder / "photo_queries.npy", queries["queries"])  # for bench_million
+    for factory, params in recall_factories(store.n, which):
+        path = folder / "global" / "recall.faiss"  # beside the store: a two-stage index re-ranks from it
         if factory != built:  # the same index searched with other parameters is built once
             t0 = time.perf_counter()
-            build_index_from_store(store.path, path, factory)
+            build_index_from_store(store.path, path, factory)  # a two-stage index: re-ranks from the store
             built, build_s = factory, time.perf_counter() - t0
         index = load_index(path)
         _set_params(index, params)
@@ -206,104 +259,165 @@ def bench_recall_set(work: Path, name: str, map_path: Path, tile_m: float, overl
         print(json.dumps(row), flush=True)
         rows.append(row)
         del index
-    for f in work.glob("recall.faiss*"):
+    for f in path.parent.glob("recall.faiss*"):
         f.unlink()
     return rows
 
 
-def bench_recall(work: Path) -> list[dict]:
+def bench_recall(work: Path, which: str = "all") -> list[dict]:
     """Neighbour recall of approximate factories vs exact on every real set (see bench_recall_set)."""
-    return [r for s in RECALL_SETS for r in bench_recall_set(work, *s)]
+    return [r for s in RECALL_SETS for r in bench_recall_set(work, *s, which=which)]
 
 
-def child_million(npy: Path, index: Path) -> None:
-    """Search the memory-mapped 1e6 index: ms/query one at a time, recall@10 vs exact, peak RSS."""
-    from aeroloc.retrieval.index import load_index, search
+def _proc_status_mb(key: str) -> float:
+    """A memory figure of this process from /proc/self/status (VmHWM: the peak RSS of this program since its
+    exec, unlike ru_maxrss, which keeps the peak of the process it was forked from)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
 
-    base = _rss_mb()
-    idx = load_index(index)
+
+def _exact_top10(npy: Path, q: np.ndarray, chunk: int = 50_000) -> np.ndarray:
+    """Exact top-10 ids of ``q`` over the float16 store, scanned in chunks (what Flat returns)."""
     mm = np.load(npy, mmap_mode="r")
-    rng = np.random.default_rng(5)
-    q = np.asarray(mm[rng.choice(len(mm), 200, replace=False)], np.float32) + rng.normal(0, 0.02, (200, mm.shape[1]))
-    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
-    search(idx, q[:5], 10)
-    t0 = time.perf_counter()
-    got = np.concatenate([search(idx, q[i : i + 1], 10)[1] for i in range(len(q))])
-    ms = (time.perf_counter() - t0) * 1000 / len(q)
-    rss = _rss_mb()
     best = np.full((len(q), 10), -1)
-    scores = np.full((len(q), 10), -np.inf)
-    for s in range(0, len(mm), 100_000):  # exact top-10 in chunks (after the RSS reading)
-        sc = q @ np.asarray(mm[s : s + 100_000], np.float32).T
+    scores = np.full((len(q), 10), -np.inf, np.float32)
+    for s in range(0, len(mm), chunk):
+        sc = q @ np.asarray(mm[s : s + chunk], np.float32).T
         allsc = np.concatenate([scores, sc], 1)
         allid = np.concatenate([best, np.arange(s, s + sc.shape[1])[None].repeat(len(q), 0)], 1)
-        top = np.argsort(-allsc, 1)[:, :10]
+        top = np.argsort(-allsc, 1, kind="stable")[:, :10]
         scores, best = np.take_along_axis(allsc, top, 1), np.take_along_axis(allid, top, 1)
-    r10 = float(np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, best)]))
-    print(json.dumps({"ms_per_query": ms, "rss_mb": rss, "rss_before_mb": base, "r@10": r10, "ntotal": idx.ntotal}))
+    return best
 
 
-def bench_million(work: Path, n: int = 1_000_000) -> dict:
-    """10^6 vectors: the 2e4 real descriptors PCA-reduced to 256-d, repeated with noise; IVF4096,SQ8 on disk."""
+def child_million(npy: Path, index: Path, queries: Path, candidates: str) -> None:
+    """Search the 1e6 index one query at a time: ms/query with the store in the page cache, and after its pages
+    were dropped from the cache (posix_fadvise DONTNEED on that file only: reads from disk), at each number of
+    candidates; recall@10 vs exact (ids in ``queries`` + ``.exact.npy``); peak and current RSS of this program."""
+    from aeroloc.retrieval.index import load_index, search
+
+    base = _proc_status_mb("VmRSS")
+    idx = load_index(index)
+    loaded = _proc_status_mb("VmRSS")
+    q = np.load(queries).astype(np.float32)
+    exact = np.load(str(queries).replace(".npy", ".exact.npy"))
+    out = {"rss_start_mb": base, "rss_after_load_mb": loaded, "ntotal": idx.ntotal, "n_queries": len(q)}
+    for r in map(int, candidates.split(",")):
+        idx.candidates = r
+        search(idx, q[:5], 10)
+        for cache in ("warm", "cold"):
+            if cache == "cold":
+                fd = os.open(npy, os.O_RDONLY)
+                os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+                os.close(fd)
+            t0 = time.perf_counter()
+            got = np.concatenate([search(idx, q[i : i + 1], 10)[1] for i in range(len(q))])
+            out[f"R{r} {cache} ms/query"] = round((time.perf_counter() - t0) * 1000 / len(q), 2)
+        out[f"R{r} r@1"], out[f"R{r} r@10"] = _recall(got, exact)
+    out["rss_peak_mb"], out["rss_end_mb"] = _proc_status_mb("VmHWM"), _proc_status_mb("VmRSS")
+    out["rss_file_end_mb"] = _proc_status_mb("RssFile")
+    print(json.dumps(out))
+
+
+def bench_million(work: Path, n: int = 1_000_000, noise: float = 0.3, candidates: str = "200,400,800") -> dict:
+    """10^6 real 8192-d descriptors: the tiles of the three real sets (from ``--only recall``), repeated with
+    noise (each copy: a real row + Gaussian noise of norm ``noise``, renormalised) into a float16 store of
+    16 GB; ``auto``'s two-stage index built from it; searched in a child process with every set's real photos
+    (their exact top-10 over the 10^6 rows computed first)."""
     from aeroloc.retrieval.index import build_index_from_store
-    from aeroloc.retrieval.store import DescriptorStore
 
-    gdir = next((work / "build-2e4-in-process" / "global").iterdir())
-    real = DescriptorStore.open_complete(gdir).load(mmap=False).astype(np.float32)
-    sample = real[np.random.default_rng(1).choice(len(real), 3000, replace=False)]
-    mean = sample.mean(0)
-    w, v = np.linalg.eigh((sample - mean) @ (sample - mean).T)  # PCA through the 3000 x 3000 Gram matrix
-    axes = ((sample - mean).T @ v[:, -256:]) / np.sqrt(np.maximum(w[-256:], 1e-12))
-    small = (real - mean) @ axes
-    small /= np.linalg.norm(small, axis=1, keepdims=True)
-    npy = work / "million.npy"
-    rng = np.random.default_rng(0)
-    mm = np.lib.format.open_memmap(npy, "w+", np.float16, (n, 256))
-    for s in range(0, n, 50_000):
-        x = small[rng.integers(0, len(small), 50_000)] + rng.normal(0, 0.05, (50_000, 256)).astype(np.float32)
-        mm[s : s + 50_000] = (x / np.linalg.norm(x, axis=1, keepdims=True))[: n - s]
-    mm.flush()
-    del mm
+    stores = [next((work / f"recall-{s[0].split()[0]}" / "global").glob("*/descriptors.npy")) for s in RECALL_SETS]
+    real = np.concatenate([np.load(p).astype(np.float32) for p in stores])
+    q = np.concatenate([np.load(p.parents[2] / "photo_queries.npy") for p in stores]).astype(np.float32)
+    folder = work / "million"
+    folder.mkdir(parents=True, exist_ok=True)
+    npy, qpath = folder / "descriptors.npy", folder / "queries.npy"
+    d = real.shape[1]
     t0 = time.perf_counter()
-    factory = build_index_from_store(npy, work / "million.faiss", "auto", nprobe=32)
+    if not (npy.is_file() and np.load(npy, mmap_mode="r").shape == (n, d)):
+        rng = np.random.default_rng(0)
+        mm = np.lib.format.open_memmap(folder / "part.npy", "w+", np.float16, (n, d))
+        mm[: len(real)] = real  # the real tiles themselves, then noisy copies
+        for s in range(len(real), n, 20_000):
+            m = min(20_000, n - s)
+            x = real[rng.integers(0, len(real), m)]
+            x += rng.standard_normal((m, d), dtype=np.float32) * (noise / np.sqrt(d))
+            mm[s : s + m] = x / np.linalg.norm(x, axis=1, keepdims=True)
+        mm.flush()
+        del mm
+        (folder / "part.npy").replace(npy)
+    gen_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    np.save(qpath, q)
+    np.save(folder / "queries.exact.npy", _exact_top10(npy, q))
+    exact_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    factory = build_index_from_store(npy, folder / "index.faiss", "auto")
     build_s = time.perf_counter() - t0
     out = subprocess.run(
-        [sys.executable, __file__, "--child-million", str(npy), str(work / "million.faiss")],
+        [sys.executable, __file__, "--child-million", str(npy), str(folder / "index.faiss"), str(qpath), candidates],
         capture_output=True,
         text=True,
     )
     if out.returncode:
         raise SystemExit(out.stderr[-2000:])
-    return {"factory": factory, "build_s": build_s, **json.loads(out.stdout.strip().splitlines()[-1])}
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    return {
+        "factory": factory,
+        "n": n,
+        "real rows": len(real),
+        "generate_s": round(gen_s, 1),
+        "exact_s": round(exact_s, 1),
+        "build_s": round(build_s, 1),
+        "coarse index MB": round((folder / "index.faiss").stat().st_size / 2**20, 1),
+        "store GB": round(npy.stat().st_size / 2**30, 2),
+        "load average": round(os.getloadavg()[0], 1),
+        **res,
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/tmp/aeroloc-scale")
     ap.add_argument("--child", nargs=5)
-    ap.add_argument("--child-million", nargs=2)
+    ap.add_argument("--child-million", nargs=4)
     ap.add_argument("--only", choices=["tiling", "build", "recall", "million"])
     ap.add_argument("--no-ray", action="store_true", help="builds: in-process only (the RSS figures)")
+    ap.add_argument("--factories", choices=["all", "two-stage", "one-stage"], default="all", help="recall: which")
+    ap.add_argument("--n", type=int, default=1_000_000, help="million: rows of the synthetic store")
     a = ap.parse_args()
     if a.child:
         out, zoom, overlap, ray, workers = a.child
         return child_build(Path(out), float(zoom), float(overlap), ray or None, int(workers))
     if a.child_million:
-        return child_million(Path(a.child_million[0]), Path(a.child_million[1]))
+        return child_million(*map(Path, a.child_million[:3]), a.child_million[3])
     work = Path(a.out)
     work.mkdir(parents=True, exist_ok=True)
     if a.only in (None, "tiling"):
+        print(f"load average before: {os.getloadavg()[0]:.1f}")
         print(
-            "| map, grid | tiles | windows db tiles/s | window reads tiles/s | PNG db tiles/s | aero-vloc tiles | aero-vloc tiles/s |"
+            "| map, grid | tiles | aero-vloc tiles/s (tiles) | windows db: first call / cold hash / warm, ms "
+            "| x aero-vloc tiles/s | window reads tiles/s | PNG db tiles/s |"
         )
         for r in bench_tiling(work):
-            print(f"| {r[0]} | {r[1]} | {r[2]:.0f} | {r[3]:.0f} | {r[4]:.1f} | {r[5]} | {r[6]:.0f} |", flush=True)
+            first = "—" if r["first call ms"] is None else f"{r['first call ms']:.1f}"
+            first_x = "—" if r["first call x"] is None else f"{r['first call x']:.0f}"
+            print(
+                f"| {r['grid']} | {r['tiles']} | {r['aero-vloc tiles/s']:.0f} ({r['aero-vloc tiles']}) "
+                f"| {first} / {r['cold hash ms']:.1f} / {r['warm ms']:.1f} "
+                f"| {first_x} / {r['cold hash x']:.0f} / {r['warm x']:.0f} "
+                f"| {r['window reads tiles/s']:.0f} | {r['PNG db tiles/s']:.1f} |",
+                flush=True,
+            )
+        print(f"load average after: {os.getloadavg()[0]:.1f}")
     if a.only in (None, "build"):
         print(json.dumps(bench_builds(work, not a.no_ray), indent=1), flush=True)
     if a.only in (None, "recall"):
-        print(json.dumps(bench_recall(work)), flush=True)
+        print(json.dumps(bench_recall(work, a.factories)), flush=True)
     if a.only in (None, "million"):
-        print(json.dumps(bench_million(work)), flush=True)
+        print(json.dumps(bench_million(work, a.n)), flush=True)
 
 
 if __name__ == "__main__":

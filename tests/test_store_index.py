@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -328,8 +329,9 @@ def test_choose_factory_by_size():
     from aeroloc.retrieval.index import choose_factory
 
     assert choose_factory(35, 8192) == choose_factory(99_999, 8192) == "Flat"
-    # recall first: the approximate index that kept >= 0.98 of the exact top-10 on real tiles
-    assert choose_factory(100_000, 8192) == choose_factory(10**6, 128) == "HNSW32,SQ8"
+    # above: a compact coarse index and an exact re-rank of its candidates from the store
+    assert choose_factory(100_000, 8192) == choose_factory(10**6, 8192) == "PCA512,L2norm,HNSW32,SQ8,Rerank400"
+    assert choose_factory(10**6, 128) == "HNSW32,SQ8,Rerank400"  # small descriptors need no PCA
 
 
 @pytest.mark.parametrize("factory", ["Flat", "IVF16,SQ8", "PCA32,IVF16,SQ8"])
@@ -424,3 +426,76 @@ def test_hnsw_from_the_store_keeps_its_search_breadth(tmp_path):
     _, got = search(back, x16[:40], 10)
     _, want = search(build_index(x16, "Flat"), x16[:40], 10)
     assert np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, want)]) >= 0.9
+
+
+def clustered_rows(n: int, dim: int, seed: int = 0) -> np.ndarray:
+    """Unit rows around 40 centres with a decaying spectrum (like real descriptors: PCA keeps the clusters)."""
+    rng = np.random.default_rng(seed)
+    scale = (1.0 / np.arange(1, dim + 1)) ** 0.5
+    centres = rng.standard_normal((40, dim)) * scale
+    x = centres[rng.integers(0, 40, n)] + 0.6 * rng.standard_normal((n, dim)) * scale
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def _store(tmp_path, x) -> tuple:
+    np.save(tmp_path / "d.npy", x.astype(np.float16))
+    return tmp_path / "d.npy", np.load(tmp_path / "d.npy").astype(np.float32)
+
+
+def test_two_stage_index_scores_its_candidates_exactly_from_the_store_without_mapping_it(tmp_path):
+    """PCA + HNSW over 8-bit codes finds candidates; each returned score is the exact inner product with the
+    store's row (what Flat computes), best first; with as many candidates as tiles the answer is exact search's;
+    with a few it keeps most of the exact top-10 and beats the coarse index alone. The store is read, not
+    memory-mapped (its pages never count in the process's RAM)."""
+    import faiss
+
+    from aeroloc.retrieval.index import RerankIndex, build_index_from_store
+
+    npy, x16 = _store(tmp_path, clustered_rows(3000, 256, seed=1))
+    q = x16[:40] + 0.05 * unit_rows(40, 256, seed=9)
+    _, want = search(build_index(x16, "Flat"), q, 10)
+    recalls = {}
+    for r in (3000, 60):
+        f = f"PCA32,L2norm,HNSW32,SQ8,Rerank{r}"
+        assert build_index_from_store(npy, tmp_path / "i.faiss", f, chunk=700) == f
+        index = load_index(tmp_path / "i.faiss")
+        assert isinstance(index, RerankIndex) and index.ntotal == 3000 and index.candidates == r
+        scores, ids = search(index, q, 10)
+        np.testing.assert_allclose(scores, np.take_along_axis(q @ x16.T, ids, 1), rtol=0, atol=1e-5)
+        assert (np.diff(scores, axis=1) <= 0).all()
+        recalls[r] = np.mean([len(set(a) & set(b)) / 10 for a, b in zip(ids, want)])
+        assert str(npy.resolve()) not in Path("/proc/self/maps").read_text()
+    assert recalls[3000] == 1.0
+    coarse = faiss.read_index(str(tmp_path / "i.faiss"))  # the coarse stage alone
+    _, alone = coarse.search(q, 10)
+    alone_recall = np.mean([len(set(a) & set(b)) / 10 for a, b in zip(alone, want)])
+    assert recalls[60] >= 0.9 and recalls[60] > alone_recall, (recalls, alone_recall)
+
+
+def test_two_stage_index_bad_input(tmp_path):
+    """A re-rank that is not last, has no candidates or follows an exact index is refused in one line; so is
+    a two-stage index whose store is gone or no longer matches it; a rebuild with another factory drops the
+    re-rank."""
+    from aeroloc.retrieval.index import build_index_from_store
+
+    npy, _ = _store(tmp_path, clustered_rows(500, 64, seed=2))
+    for factory, match in [
+        ("HNSW32,Rerank0", ">= 1 candidate"),
+        ("HNSW32,Rerank", "written last"),
+        ("Rerank50,HNSW32", "written last"),
+        ("Flat,Rerank50", "needs no re-rank"),
+    ]:
+        with pytest.raises(AerolocError, match=match):
+            build_index_from_store(npy, tmp_path / "i.faiss", factory)
+    build_index_from_store(npy, tmp_path / "i.faiss", "HNSW32,SQ8,Rerank50")
+    load_index(tmp_path / "i.faiss")
+    np.save(npy, clustered_rows(499, 64, seed=2).astype(np.float16))
+    with pytest.raises(AerolocError, match="does not match its index"):
+        load_index(tmp_path / "i.faiss")
+    npy.unlink()
+    with pytest.raises(AerolocError, match="store of the two-stage index is missing"):
+        load_index(tmp_path / "i.faiss")
+    _store(tmp_path, clustered_rows(500, 64, seed=2))
+    build_index_from_store(npy, tmp_path / "i.faiss", "HNSW32,SQ8")
+    assert not (tmp_path / "i.faiss.rerank.json").exists()
+    assert not hasattr(load_index(tmp_path / "i.faiss"), "candidates")

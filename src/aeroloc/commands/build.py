@@ -37,7 +37,8 @@ def add_arguments(p):
     p.add_argument(
         "--index",
         default="auto",
-        help="faiss factory string (default auto: Flat under 1e5 tiles, else HNSW32,SQ8; e.g. PCA256,IVF4096,SQ8)",
+        help="faiss factory string, optionally ending in ',Rerank<N>' (the N best candidates re-ranked exactly from "
+        "the store); default auto: Flat under 1e5 tiles, else PCA512,L2norm,HNSW32,SQ8,Rerank400",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     p.add_argument("--batch-size", type=int, default=16)

@@ -4,8 +4,12 @@ Any faiss factory string works: "Flat" (exact, default), "HNSW32", "IVF1024,PQ32
 are trained on the database descriptors; asking for more neighbours than there are tiles returns them all.
 
 At scale (:func:`build_index_from_store`): ``auto`` picks the factory by size (:func:`choose_factory`: exact
-under ``FLAT_MAX`` tiles, else HNSW over 8-bit scalar codes; PCA + IVF on request), trains it on a fixed sample and fills
-it chunk by chunk from the memory-mapped store. IVF lists live in ``index.faiss.ivfdata`` (faiss
+under ``FLAT_MAX`` tiles, else a two-stage index), trains it on a fixed sample and fills it chunk by chunk from
+the memory-mapped store. A factory ending in ``,Rerank<R>`` is two-stage (:class:`RerankIndex`): the faiss index
+before it is a compact coarse index (``PCA512,L2norm,HNSW32,SQ8``: 8192-d descriptors reduced to 512 and
+normalised, 8-bit codes in an HNSW graph, ~0.8 KB/tile) whose ``R`` best candidates are scored exactly against
+the float16 store on disk (read with ``pread``, never mapped or loaded), so RAM holds the coarse index only and
+the ranking of the top is that of exact search. IVF lists live in ``index.faiss.ivfdata`` (faiss
 ``OnDiskInvertedLists``, memory-mapped by faiss when read) and a flat index's vectors are memory-mapped too
 (``IO_FLAG_MMAP_IFC``), so searching does not load the index into RAM. (faiss 1.15 crashes when an on-disk IVF
 index is read with ``IO_FLAG_MMAP``; the on-disk lists are mapped without it.)
@@ -14,12 +18,16 @@ index is read with ``IO_FLAG_MMAP``; the on-disk lists are mapped without it.)
 from __future__ import annotations
 
 import contextlib
+import json
+import os
+import re
 import struct
 from pathlib import Path
 
 import numpy as np
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.io import atomic_write_text
 
 
 def build_index(descriptors: np.ndarray, factory: str = "Flat"):
@@ -82,18 +90,81 @@ def save_index(index, path) -> None:
 
 
 def load_index(path):
-    """The index at ``path``, its vectors / inverted lists memory-mapped (see the module docstring)."""
+    """The index at ``path``, its vectors / inverted lists memory-mapped (see the module docstring); a two-stage
+    index (``path`` + ``.rerank.json``) as a :class:`RerankIndex` over its store."""
     import faiss
 
     path = Path(path)
     if not path.is_file():
         raise AerolocError(f"{path}: index not found (rebuild with 'aeroloc build')")
+    if _rerank_json(path).is_file():
+        return RerankIndex.open(path)
     if _ivfdata(path).is_file():
         return faiss.read_index(str(path.resolve()))
     try:
         return faiss.read_index(str(path), faiss.IO_FLAG_MMAP_IFC)
     except RuntimeError:  # not a flat index: read it normally
         return faiss.read_index(str(path))
+
+
+class RerankIndex:
+    """A coarse faiss index whose ``candidates`` best ids per query are re-scored exactly: the inner product of
+    the query with each candidate's row of the float16 ``.npy`` store, as exact ``Flat`` search scores it (the
+    store's values in float32). Rows are read with ``os.preadv`` (runs of neighbouring ids in one call) into a
+    buffer, not memory-mapped, so the store's pages are the kernel's cache, not this process's RAM.
+    The top ``k`` equals exact search whenever the exact top ``k`` are among the candidates."""
+
+    def __init__(self, coarse, store: Path, candidates: int):
+        self.coarse, self.store, self.candidates = coarse, Path(store), int(candidates)
+        if not self.store.is_file():
+            raise AerolocError(f"{self.store}: the descriptor store of the two-stage index is missing (rebuild)")
+        mm = np.load(self.store, mmap_mode="r")  # the header only: no row is touched
+        shape, dtype, fortran, self._offset = mm.shape, mm.dtype, not mm.flags.c_contiguous, mm.offset
+        del mm
+        if fortran or dtype != np.float16 or len(shape) != 2 or shape[0] != coarse.ntotal:
+            raise AerolocError(
+                f"{self.store}: store {shape} {dtype} does not match its index ({coarse.ntotal} rows, float16); rebuild"
+            )
+        self.ntotal, self.d = int(shape[0]), int(shape[1])
+        self._fd = os.open(self.store, os.O_RDONLY)
+
+    @classmethod
+    def open(cls, path: Path) -> RerankIndex:
+        import faiss
+
+        meta = json.loads(_rerank_json(path).read_text())
+        return cls(faiss.read_index(str(path)), path.parent / meta["store"], meta["candidates"])
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """float16 store rows ``ids`` (sorted, unique), read in runs of consecutive ids."""
+        out = np.empty((len(ids), self.d), np.float16)
+        if not len(ids):
+            return out
+        row = self.d * 2
+        buf = memoryview(out).cast("B")
+        breaks = np.flatnonzero(np.diff(ids) != 1) + 1
+        for a, b in zip(np.r_[0, breaks], np.r_[breaks, len(ids)]):
+            want = int(b - a) * row
+            got = os.preadv(self._fd, [buf[int(a) * row : int(b) * row]], self._offset + int(ids[a]) * row)
+            if got != want:
+                raise AerolocError(f"{self.store}: short read ({got} of {want} bytes); the store was truncated")
+        return out
+
+    def search(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        q = np.ascontiguousarray(q, dtype=np.float32)
+        _, cand = self.coarse.search(q, min(max(self.candidates, k), self.ntotal))
+        scores = np.full((len(q), k), -np.inf, np.float32)
+        ids = np.full((len(q), k), -1, np.int64)
+        for i, c in enumerate(cand):
+            c = np.unique(c[c >= 0])
+            s = self.rows(c).astype(np.float32) @ q[i]
+            top = np.argsort(-s, kind="stable")[:k]
+            scores[i, : len(top)], ids[i, : len(top)] = s[top], c[top]
+        return scores, ids
+
+    def __del__(self):
+        with contextlib.suppress(AttributeError, OSError):
+            os.close(self._fd)
 
 
 FLAT_MAX = 100_000  # exact search below this many tiles (16 KB/tile at 8192-d: 1.6 GB at the limit)
@@ -103,17 +174,26 @@ TRAIN_MAX = 20_000  # training sample of an index without PCA (8192-d float32: 6
 # 0.94-0.99 at 64 (benchmarks/scale.py); faiss's default 16 loses more
 EF_SEARCH = 256
 PCA_TRAIN_MAX = 4_000  # rows the PCA is fitted on (4000 x 8192 float32: 131 MB)
+# above FLAT_MAX: a compact coarse index and an exact re-rank of its best RERANK_CANDIDATES from the store
+COARSE = "PCA512,L2norm,HNSW32,SQ8"
+RERANK_CANDIDATES = 400
+_RERANK = re.compile(r"^(?P<coarse>.+),Rerank(?P<r>\d+)$")
 
 
 def choose_factory(n: int, dim: int) -> str:
-    """Exact ``Flat`` under ``FLAT_MAX`` tiles; above, ``HNSW32,SQ8``: the one approximate index that keeps
-    recall@10 >= 0.98 of exact on real tiles (0.986-0.995 on NAIP, levir-tx and szada-hu, benchmarks/scale.py).
-    PCA + IVF (256 or 1024 dims) kept only 0.19-0.58 of the exact top-10 for real photos: 256 components hold 29 %
-    of these 8192-d descriptors' variance. HNSW lives in RAM (~8.4 KB/tile at 8192-d + SQ8): a country needs
-    a smaller descriptor or ``--index PCA256,IVF4096,SQ8`` (on disk, 1.8 GB at 10^6) and its lower recall."""
+    """Exact ``Flat`` under ``FLAT_MAX`` tiles; above, two-stage ``COARSE,Rerank<RERANK_CANDIDATES>``
+    (:class:`RerankIndex`): RAM holds the coarse index (~0.8 KB/tile) and the exact re-rank restores the top
+    (benchmarks/scale.py: recall@10 of exact on the real NAIP, levir-tx and szada-hu tiles). Descriptors of at
+    most 512 dims need no PCA: their coarse index is ``HNSW32,SQ8``. (HNSW32,SQ8 over the full 8192 dims also
+    keeps recall but is 8.4 KB/tile in RAM; PCA + IVF keep only 0.19-0.58 of the exact top-10 for photos.)"""
     if n < FLAT_MAX:
         return "Flat"
-    return "HNSW32,SQ8"
+    coarse = COARSE if dim > 512 else "HNSW32,SQ8"
+    return f"{coarse},Rerank{RERANK_CANDIDATES}"
+
+
+def _rerank_json(path: Path) -> Path:
+    return path.with_name(path.name + ".rerank.json")
 
 
 def _ivfdata(path: Path) -> Path:
@@ -128,21 +208,22 @@ def _sample_rows(npy: Path, n_pick: int) -> np.ndarray:
 
 
 def _train(index, npy: Path, n: int) -> None:
-    """Train on fixed samples of the store. A ``PCA…`` chain fits its transform on at most ``PCA_TRAIN_MAX``
-    rows with a randomized SVD (:func:`fit_pca`: faiss's own PCA on 8192-d descriptors took > 10 min) and the
-    index after it on at most ``TRAIN_MAX`` rows already reduced; other indexes train on ``TRAIN_MAX`` rows."""
+    """Train on fixed samples of the store. A ``PCA…`` chain (the PCA, optionally then ``L2norm``) fits its
+    transform on at most ``PCA_TRAIN_MAX`` rows with a randomized SVD (:func:`fit_pca`: faiss's own PCA on
+    8192-d descriptors took > 10 min) and the index after it on at most ``TRAIN_MAX`` rows already transformed;
+    other indexes train on ``TRAIN_MAX`` rows."""
     import faiss
 
     if n < 40:
         raise AerolocError(f"faiss index needs training data; {n} descriptors is too few (use Flat)")
     _skip_polysemous_training(index)
-    pca = _pca_or_none(index)
-    if pca is None:
+    chain = _pca_chain_or_none(index)
+    if chain is None:
         _train_on(index, _sample_rows(npy, TRAIN_MAX))
         return
-    fit_pca(pca, _sample_rows(npy, PCA_TRAIN_MAX))
+    fit_pca(chain[0], _sample_rows(npy, PCA_TRAIN_MAX))
     sub = faiss.downcast_index(index).index
-    _train_on(sub, _reduced_sample(pca, npy, TRAIN_MAX))
+    _train_on(sub, _reduced_sample(chain, npy, TRAIN_MAX))
     index.is_trained = True
 
 
@@ -154,24 +235,33 @@ def _train_on(index, x: np.ndarray) -> None:
         raise AerolocError(f"faiss index training failed on {len(x)} descriptors: {str(exc).splitlines()[0]}") from None
 
 
-def _pca_or_none(index):
-    """The PCA of a ``PCA…,<index>`` factory (a pre-transform chain of exactly one PCA), else None."""
+def _pca_chain_or_none(index):
+    """The transforms of a ``PCA…[,L2norm],<index>`` factory (a pre-transform chain that starts with a PCA and
+    is at most followed by a normalisation), else None."""
     import faiss
 
     index = faiss.downcast_index(index)
-    if not isinstance(index, faiss.IndexPreTransform) or index.chain.size() != 1:
+    if not isinstance(index, faiss.IndexPreTransform) or not 1 <= index.chain.size() <= 2:
         return None
-    vt = faiss.downcast_VectorTransform(index.chain.at(0))
-    return vt if isinstance(vt, faiss.PCAMatrix) else None
+    chain = [faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
+    if not isinstance(chain[0], faiss.PCAMatrix) or not all(
+        isinstance(t, faiss.NormalizationTransform) for t in chain[1:]
+    ):
+        return None
+    return chain
 
 
-def _reduced_sample(pca, npy: Path, n_pick: int, chunk: int = 2048) -> np.ndarray:
-    """The fixed training sample of ``n_pick`` rows, PCA-reduced chunk by chunk (never all of it at full dim)."""
+def _reduced_sample(chain, npy: Path, n_pick: int, chunk: int = 2048) -> np.ndarray:
+    """The fixed training sample of ``n_pick`` rows through the transforms ``chain``, chunk by chunk (never all
+    of it at full dim)."""
     mm = np.load(npy, mmap_mode="r")
     pick = np.sort(np.random.default_rng(0).choice(mm.shape[0], min(n_pick, mm.shape[0]), replace=False))
-    parts = [
-        pca.apply(np.ascontiguousarray(mm[pick[s : s + chunk]], dtype=np.float32)) for s in range(0, len(pick), chunk)
-    ]
+    parts = []
+    for s in range(0, len(pick), chunk):
+        x = np.ascontiguousarray(mm[pick[s : s + chunk]], dtype=np.float32)
+        for t in chain:
+            x = t.apply(x)
+        parts.append(x)
     return np.ascontiguousarray(np.concatenate(parts), dtype=np.float32)
 
 
@@ -217,13 +307,17 @@ def build_index_from_store(
     npy, path = Path(npy), Path(path)
     n, d = np.load(npy, mmap_mode="r").shape
     factory = choose_factory(n, d) if factory == "auto" else factory
+    coarse, candidates = _split_rerank(factory)
     try:
-        index = faiss.index_factory(d, factory, faiss.METRIC_INNER_PRODUCT)
+        index = faiss.index_factory(d, coarse, faiss.METRIC_INNER_PRODUCT)
     except RuntimeError as exc:
-        raise AerolocError(f"faiss index '{factory}' cannot be built for dim {d}: {str(exc).splitlines()[0]}") from None
+        raise AerolocError(f"faiss index '{coarse}' cannot be built for dim {d}: {str(exc).splitlines()[0]}") from None
     _ivfdata(path).unlink(missing_ok=True)
+    _rerank_json(path).unlink(missing_ok=True)
     flat = faiss.downcast_index(index)
     if type(flat) in (faiss.IndexFlat, faiss.IndexFlatIP) and flat.metric_type == faiss.METRIC_INNER_PRODUCT:
+        if candidates:
+            raise AerolocError(f"'{factory}': an exact index needs no re-rank (use Flat)")
         _write_flat(npy, path, n, d, chunk)
         return factory
     if not index.is_trained:
@@ -234,13 +328,31 @@ def build_index_from_store(
         ivf.replace_invlists(lists, True)
         lists.this.disown()  # the index owns the lists now (else Python frees them under it)
         ivf.nprobe = nprobe
-    hnsw = getattr(faiss.downcast_index(index), "hnsw", None)
+    inner = faiss.downcast_index(index)
+    if isinstance(inner, faiss.IndexPreTransform):
+        inner = faiss.downcast_index(inner.index)
+    hnsw = getattr(inner, "hnsw", None)
     if hnsw is not None:
-        hnsw.efSearch = ef_search
+        hnsw.efSearch = max(ef_search, candidates)
     for rows in iter_rows(npy, chunk):
         index.add(np.ascontiguousarray(rows, dtype=np.float32))
     save_index(index, path)
+    if candidates:  # after the index: a crash in between leaves an index the database does not register
+        store = os.path.relpath(npy.resolve(), path.resolve().parent)
+        atomic_write_text(_rerank_json(path), json.dumps({"store": store, "candidates": candidates}))
     return factory
+
+
+def _split_rerank(factory: str) -> tuple[str, int]:
+    """(coarse factory, candidates) of ``…,Rerank<R>``; (factory, 0) for a one-stage factory."""
+    m = _RERANK.match(factory)
+    if m is None:
+        if "Rerank" in factory:
+            raise AerolocError(f"'{factory}': the re-rank is written last, as ',Rerank<candidates>' (e.g. ,Rerank400)")
+        return factory, 0
+    if int(m["r"]) < 1:
+        raise AerolocError(f"'{factory}': the re-rank needs >= 1 candidate")
+    return m["coarse"], int(m["r"])
 
 
 def _write_flat(npy: Path, path: Path, n: int, d: int, chunk: int) -> None:

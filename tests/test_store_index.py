@@ -330,7 +330,7 @@ def test_choose_factory_by_size():
 
     assert choose_factory(35, 8192) == choose_factory(99_999, 8192) == "Flat"
     # above: a compact coarse index and an exact re-rank of its candidates from the store
-    assert choose_factory(100_000, 8192) == choose_factory(10**6, 8192) == "PCA512,L2norm,HNSW32,SQ8,Rerank400"
+    assert choose_factory(100_000, 8192) == choose_factory(10**6, 8192) == "PCA1024,L2norm,HNSW32,SQ8,Rerank400"
     assert choose_factory(10**6, 128) == "HNSW32,SQ8,Rerank400"  # small descriptors need no PCA
 
 
@@ -499,3 +499,16 @@ def test_two_stage_index_bad_input(tmp_path):
     build_index_from_store(npy, tmp_path / "i.faiss", "HNSW32,SQ8")
     assert not (tmp_path / "i.faiss.rerank.json").exists()
     assert not hasattr(load_index(tmp_path / "i.faiss"), "candidates")
+
+
+def test_float16_rows_decoded_by_faiss_are_numpys_values():
+    """as_float32 (faiss's F16C decoding, used wherever the store's rows are read) gives numpy's float32 value
+    for every float16 bit pattern: normal, subnormal, zeros of both signs, infinities (NaNs stay NaN)."""
+    from aeroloc.retrieval.index import as_float32
+
+    every = np.arange(65536, dtype=np.uint16).view(np.float16).reshape(256, 256)
+    got, want = as_float32(every), every.astype(np.float32)
+    assert got.dtype == np.float32 and got.flags.c_contiguous
+    nan = np.isnan(want)
+    assert (np.isnan(got) == nan).all()
+    assert (got[~nan].view(np.uint32) == want[~nan].view(np.uint32)).all()  # bit for bit, -0.0 included

@@ -38,7 +38,7 @@ def add_arguments(p):
         "--index",
         default="auto",
         help="faiss factory string, optionally ending in ',Rerank<N>' (the N best candidates re-ranked exactly from "
-        "the store); default auto: Flat under 1e5 tiles, else PCA512,L2norm,HNSW32,SQ8,Rerank400",
+        "the store); default auto: Flat under 1e5 tiles, else PCA1024,L2norm,HNSW32,SQ8,Rerank400",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     p.add_argument("--batch-size", type=int, default=16)

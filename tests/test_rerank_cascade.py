@@ -90,6 +90,48 @@ def test_quarter_turned_query_is_found_at_its_rotation_and_lands_on_the_same_spo
     assert geo.geodesic_distance(q.lat, q.lon, a1.lat, a1.lon) < 25.0
 
 
+@pytest.mark.slow
+def test_diagonal_query_is_matched_at_its_diagonal_and_lands_on_the_same_spot(db, reranker, query):
+    """A photo 45° off every quarter turn: the diagonal that undoes it (rotation 4: 45° counter-clockwise)
+    screens far more inliers than the upright rotation, and the cascade with the heading unknown places it
+    where the upright photo is."""
+    from aeroloc.core.frames import turned
+
+    _q, image = query
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
+    best0, a0 = _localize(db, reranker, image, tile_ids)
+    # the photo's own turn against the map (it is not exactly north-up), so that the turned one is 45° off
+    own = np.degrees(np.arctan2(best0.H[1, 0], best0.H[0, 0]))
+    diagonal = turned(image, -45.0 - own)[0]  # the content 45° clockwise of north-up
+    at = {k: reranker(diagonal, tile_ids, 1, rotations=[k]).candidates[0] for k in (0, 3, 4)}
+    assert at[4].rot_k == 4 and at[4].screen >= 2 * max(at[0].screen, at[3].screen), at
+    _best, a = _localize(db, reranker, diagonal, tile_ids)
+    assert a.localized, a.status
+    assert geo.geodesic_distance(a0.lat, a0.lon, a.lat, a.lon) < 10.0
+
+
+def test_diagonal_features_map_back_to_the_original_frame(reranker, query):
+    """Keypoints extracted on the query turned by each diagonal, mapped back by to_original, meet the same
+    query's upright keypoints: a similarity fitted between them is the identity, its shift within 2 px as for the
+    lossless quarter turns (XFeat's keypoints move 0.6-1.7 px on this 256 px query when its grid turns)."""
+    from aeroloc.matching.features import extract, rotation_angle, to_original
+    from aeroloc.matching.verify import verify_similarity
+
+    _q, image = query
+    f0 = extract(reranker.extractor, image, 512, 0)
+    for k in range(1, 8):
+        fk = extract(reranker.extractor, image, 512, k)
+        assert rotation_angle(k) == 90.0 * (k % 4) + (45.0 if k >= 4 else 0.0)
+        assert fk["scale"] == pytest.approx(f0["scale"])  # the ground keeps its density against the tiles
+        p0, pk = to_original(f0), to_original(fk)
+        d = np.linalg.norm(p0[:, None, :] - pk[None, :, :], axis=2)
+        pairs = np.stack([np.arange(len(p0)), d.argmin(1)], 1)[d.min(1) < 3.0]
+        assert len(pairs) > 200, k
+        v = verify_similarity(p0, pk, pairs, threshold_px=1.5)
+        assert v.n_inliers > 300  # of nearest keypoints within 3 px (resampling moves some, others are not the same)
+        assert np.allclose(v.H, np.eye(3), atol=np.array([[0.01, 0.01, 2.0], [0.01, 0.01, 2.0], [0, 0, 0]])), v.H
+
+
 def test_doubt_rule_overrules_a_weak_screen_only_where_configured(reranker):
     """The default scores the matcher by similarity inliers, on which wrong tiles stay <= 24 < min_inliers, so it
     trusts the matcher alone; a homography-scored setup (where a wrong Toledo tile reached 41) can still require

@@ -8,6 +8,8 @@ and linear or cubic when enlarging (what each stage was measured with).
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -50,3 +52,25 @@ def project_points(H: np.ndarray, pts) -> tuple[np.ndarray, np.ndarray]:
     v = np.c_[pts, np.ones(len(pts))] @ np.asarray(H, np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
         return v[:, :2] / v[:, 2:3], v[:, 2]
+
+
+def turned(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``image`` turned ``angle`` degrees (OpenCV, counter-clockwise) on a canvas that holds all of it, the mask of
+    its own pixels, and the 2x3 affine from image to canvas (pixel-centre coordinates); the canvas centre is the
+    image centre, so the centre's position is unchanged."""
+    h, w = image.shape[:2]
+    a = math.radians(angle)
+    c, s = abs(math.cos(a)), abs(math.sin(a))
+    W, H = int(math.ceil(w * c + h * s - 1e-6)), int(math.ceil(w * s + h * c - 1e-6))
+    R = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), angle, 1.0)
+    R[:, 2] += ((W - w) / 2.0, (H - h) / 2.0)
+    out = cv2.warpAffine(image, R, (W, H), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
+    mask = cv2.warpAffine(np.full((h, w), 255, np.uint8), R, (W, H), flags=cv2.INTER_NEAREST) > 0
+    return out, cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0, R
+
+
+def unturn_points(xy: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """Points (pixel-edge origin) of a :func:`turned` canvas back in the image it was turned from."""
+    inv = cv2.invertAffineTransform(np.asarray(affine, np.float64))
+    p = np.asarray(xy, np.float64) - 0.5
+    return p @ inv[:, :2].T + inv[:, 2] + 0.5

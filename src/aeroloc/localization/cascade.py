@@ -8,7 +8,9 @@ re-ranking runs in two stages on features that are extracted once per query and 
    taken at any heading) are tried lazily: the first ``rotation_probe`` candidates at the upright rotation,
    the next rotation only while none reached ``min_screen`` inliers, later candidates at the heading found;
    each rotation's features are extracted on first use, so an upright photo costs one
-   extraction. Candidates are visited in retrieval order and the screen stops early once one reaches
+   extraction. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
+   bridge only ~20-40° of rotation: on the probe always, on later candidates where the dominant orientations of
+   query and tile (aeroloc.matching.orientation) say the query lies nearer a diagonal. Candidates are visited in retrieval order and the screen stops early once one reaches
    ``early_exit`` inliers (the rest keep their retrieval order behind it).
 2. **verify**: when no candidate's screen reached ``accept_screen`` inliers, the re-ranker's own matcher (e.g.
    LighterGlue, ~0.3-1 s a pair on CPU) re-matches the best screened candidates, at most ``max_verify``, until
@@ -29,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aeroloc.matching.features import extract, to_original
+from aeroloc.matching.features import DIAGONAL, extract, to_original
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
 
@@ -87,6 +89,7 @@ class Reranker:
         self.extractor, self.matcher = build_reranker(self.conf["features"], device, feature_overrides(self.conf))
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
+        self._orientation: dict[str, float] = {}
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
@@ -144,12 +147,39 @@ class Reranker:
         wf = extract(self.extractor, window.image, side, 0, mask=window.valid)
         return self.match_pair(qf, wf)
 
-    def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict) -> int:
+    def tile_orientation(self, tile_id: str) -> float:
+        """The tile's dominant orientation (aeroloc.matching.orientation), computed once per tile and kept."""
+        from aeroloc.matching.orientation import dominant_orientation
+
+        a = self._orientation.get(tile_id)
+        if a is None:
+            a = self._orientation[tile_id] = dominant_orientation(self.db.tile_image(tile_id))[0]
+        return a
+
+    def _families(self, image: np.ndarray, cands: list[Candidate]) -> dict[str, list[int]]:
+        """Per candidate, the rotations to screen when the heading is unknown: the quarter turns, and the diagonals
+        (4-7) before them when the query's cross lies nearer 45° than 0° off the tile's
+        (aeroloc.matching.orientation). Later candidates, while the heading is not settled, are screened at
+        their own list: the diagonals are added, never traded for a quarter turn (screening only the estimated
+        family lost a szada-hu query whose tile's cross was 35° off its true turn)."""
+        from aeroloc.matching.orientation import dominant_orientation, residual_turn
+
+        qa = dominant_orientation(image)[0]
+        quarter, diagonal = [0, 1, 2, 3], [DIAGONAL + k for k in range(4)]
+        out = {}
+        for c in cands:
+            diag = abs(residual_turn(qa, self.tile_orientation(c.tile_id))) > 22.5
+            out[c.tile_id] = diagonal + quarter if diag else quarter
+        return out
+
+    def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict, families=None) -> int:
         """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
 
         Rotation-major on the first ``rotation_probe`` candidates: all of them at the upright rotation first, the
         next rotation only if none reached ``min_screen``; later candidates at the heading found (or at every
-        rotation while none is). Stops at the first candidate reaching ``early_exit``.
+        rotation while none is). Stops at the first candidate reaching ``early_exit``. With ``families`` (tile
+        id -> its rotations, :meth:`_families`; the heading unknown) the probe tries all eight rotations, and a
+        later candidate, while the heading is not settled, its own list.
         """
         c_ = self.conf
         best = {"rot": rots[0], "score": -1}
@@ -164,13 +194,19 @@ class Reranker:
             return c.screen >= c_["early_exit"]
 
         probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]) :]
-        for k in rots:
+        # every rotation on the probe, the first candidate's family first, but upright first of all: most photos
+        # are near north-up, and then it costs one extraction
+        if families:
+            first = families[probe[0].tile_id]
+            order = [0] + [r for r in first if r != 0] + [r for r in range(2 * DIAGONAL) if r not in first]
+        for k in order if families else rots:
             if any(screen(c, k) for c in probe):
                 return n
             if best["score"] >= c_["min_screen"]:
                 break
         for c in rest:
-            for k in [best["rot"]] + [r for r in rots if r != best["rot"]]:
+            own = families[c.tile_id] if families else rots
+            for k in [best["rot"]] + [r for r in own if r != best["rot"]]:
                 if k != best["rot"] and best["score"] >= c_["min_screen"]:
                     break  # the heading is settled
                 if screen(c, k):
@@ -178,13 +214,13 @@ class Reranker:
         return n
 
     def __call__(self, image: np.ndarray, tile_ids: list[str], top_k: int = 1, rotations=None) -> Reranked:
-        """Re-rank ``tile_ids`` for ``image``; ``rotations`` (multiples of 90° CCW) overrides the conf's, e.g. the
-        one a heading prior points at."""
+        """Re-rank ``tile_ids`` for ``image``; ``rotations`` (indices of aeroloc.matching.features.rotation_angle:
+        0-3 quarter turns CCW, 4-7 diagonals) overrides the conf's, e.g. the one a heading prior points at."""
         t0 = time.perf_counter()
         tfs = self.tile_features(tile_ids)
         t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
-        rots = [k % 4 for k in (self.conf["rotations"] if rotations is None else rotations)]
+        rots = [k % 8 for k in (self.conf["rotations"] if rotations is None else rotations)]
         n_screened = n_verified = 0
         query = {}  # rot_k -> features, extracted on first use: an upright photo that matches costs one extraction
 
@@ -197,7 +233,9 @@ class Reranker:
             return query[k]
 
         if self.conf["screen"]:
-            n_screened = self._screen(cands, rots, features, tfs)
+            unknown = rotations is None and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
+            families = self._families(image, cands) if unknown and cands else None
+            n_screened = self._screen(cands, rots, features, tfs, families)
             screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
             accept = self.conf["accept_screen"]
             if screened and accept is not None and screened[0].screen >= accept:

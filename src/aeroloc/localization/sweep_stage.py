@@ -14,10 +14,9 @@ import math
 import warnings
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from aeroloc.core import geo
+from aeroloc.core import frames, geo
 from aeroloc.core.images import valid_mask
 from aeroloc.localization.alignment import Alignment, align, reach_m
 from aeroloc.localization.results import AMBIGUOUS
@@ -79,16 +78,9 @@ class SweepLocator:
 
 def upright(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
     """``image`` turned ``angle`` degrees (OpenCV, counter-clockwise) on a canvas that holds all of it, and the
-    mask of its own pixels; the canvas centre is the image centre, so the centre's position is unchanged."""
-    h, w = image.shape[:2]
-    a = math.radians(angle)
-    c, s = abs(math.cos(a)), abs(math.sin(a))
-    W, H = int(math.ceil(w * c + h * s - 1e-6)), int(math.ceil(w * s + h * c - 1e-6))
-    R = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), angle, 1.0)  # OpenCV: pixel-centre origin
-    R[:, 2] += ((W - w) / 2.0, (H - h) / 2.0)
-    out = cv2.warpAffine(image, R, (W, H), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
-    mask = cv2.warpAffine(np.full((h, w), 255, np.uint8), R, (W, H), flags=cv2.INTER_NEAREST) > 0
-    return out, cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    mask of its own pixels (aeroloc.core.frames.turned)."""
+    out, mask, _ = frames.turned(image, angle)
+    return out, mask
 
 
 def footprint_window(map_, h: Hypothesis, size: tuple[int, int], margin: float = 0.25) -> Window | None:

@@ -4,7 +4,7 @@ Matchers work best when query and tile show the ground at a similar scale, so bo
 longer side is ``side`` pixels before extraction (NAIP tiles are ~170-260 px at 5 m/px and gain from
 upsampling; drone photos are ~3x finer than an orthomosaic and gain from downsampling). Keypoints are kept in the
 frame the extractor saw and mapped back (``to_original``) for geometry, so homographies relate original images.
-Query rotations (multiples of 90°) let upright-only matchers handle photos taken at any heading.
+Query rotations (multiples of 90°, and of 90° + 45°) let upright-only matchers handle photos taken at any heading.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.core.frames import resize, resize_to_side
+from aeroloc.core.frames import resize, resize_to_side, turned, unturn_points
 from aeroloc.core.images import valid_mask
 from aeroloc.core.io import config_key, write_json_atomic
 from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore, ShardedFeatureStore
@@ -34,18 +34,35 @@ def _rot90_points(xy: np.ndarray, k: int, w: int, h: int) -> np.ndarray:
     return np.stack([y, h - x], 1)  # k == 3
 
 
+DIAGONAL = 4  # rotation indices 4-7: the quarter turn (index - 4) and 45° more, counter-clockwise
+
+
+def rotation_angle(rot_k: int) -> float:
+    """The counter-clockwise turn (degrees) of rotation index ``rot_k``: 0-3 quarter turns, 4-7 diagonals."""
+    return 90.0 * (rot_k % 4) + (45.0 if rot_k % 8 >= DIAGONAL else 0.0)
+
+
 def extract(
     extractor, image: np.ndarray, side: int | None = None, rot_k: int = 0, mask: np.ndarray | None = None
 ) -> dict:
-    """Features of ``image`` rotated by rot_k*90° CCW and resized to ``side``.
+    """Features of ``image`` turned by :func:`rotation_angle` (``rot_k``) and resized to ``side``.
 
+    Rotation indices 0-3 are lossless quarter turns. 4-7 add 45° on a canvas that holds the whole image, resized
+    by the factor the quarter turn gets, so the ground keeps the density it has against the tiles (the canvas
+    is up to 1.41x longer; shrinking it to ``side`` too made the query 1.3-1.4x coarser than the tiles).
     ``keypoints`` stay in the frame the extractor saw (what matchers with positional encodings expect);
-    ``scale``, ``rot_k`` and ``orig_size`` let :func:`to_original` map them back for geometry.
+    ``scale``, ``rot_k``, ``orig_size`` (and ``turn_affine``) let :func:`to_original` map them back for geometry.
     """
     h, w = image.shape[:2]
     if mask is None:
         mask = valid_mask(image)
-    img, m = np.rot90(image, rot_k), np.rot90(mask, rot_k)
+    img, m = np.rot90(image, rot_k % 4), np.rot90(mask, rot_k % 4)
+    turn = None
+    if rot_k % 8 >= DIAGONAL:
+        factor = side / max(img.shape[:2]) if side else 1.0
+        img, turned_mask, turn = turned(np.ascontiguousarray(img), 45.0)
+        m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, 45.0)[0] > 0)
+        side = round(max(img.shape[:2]) * factor)
     small, s = resize_to_side(np.ascontiguousarray(img), side)
     if s != 1.0:
         m = resize(m.astype(np.uint8), s, nearest=True) > 0
@@ -54,7 +71,9 @@ def extract(
     f["image_size"] = np.array([small.shape[1], small.shape[0]], np.int64)
     f["orig_size"] = np.array([w, h], np.int64)
     f["scale"] = np.float64(s)
-    f["rot_k"] = np.int64(rot_k % 4)
+    f["rot_k"] = np.int64(rot_k % 8)
+    if turn is not None:
+        f["turn_affine"] = turn
     return f
 
 
@@ -62,7 +81,9 @@ def to_original(f: dict) -> np.ndarray:
     """Keypoints of :func:`extract` in the original image's pixel frame (pixel-edge origin)."""
     w, h = (int(v) for v in f["orig_size"])
     kp = np.asarray(f["keypoints"], np.float64) / float(f["scale"])
-    return _rot90_points(kp, int(f["rot_k"]), w, h)
+    if "turn_affine" in f:
+        kp = unturn_points(kp, f["turn_affine"])
+    return _rot90_points(kp, int(f["rot_k"]) % 4, w, h)
 
 
 def local_key(db, name: str, conf: dict) -> str:

@@ -41,6 +41,9 @@ CASCADE_DEFAULTS = {
     "tile_side": 512,
     "rotations": [0, 1, 2, 3],  # query rotations tried, in multiples of 90° CCW
     "rotation_probe": 3,  # candidates on which every rotation is tried
+    # with the heading unknown, also the diagonals (quarter turns + 45°), ordered per tile by the dominant
+    # orientations of query and tile (aeroloc.matching.orientation)
+    "diagonals": True,
     "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
     "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
     "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)

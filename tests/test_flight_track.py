@@ -93,6 +93,26 @@ def test_coasting_follows_the_turn_the_frames_showed(flight):
     assert ends[True] < 10.0 < ends[False]  # the arc: within 10 m after 6 s; straight on: farther
 
 
+def test_black_frames_coast_on_where_a_seen_frame_would_be_lost():
+    """Black frames can't show the track is wrong, so only an uncertainty beyond coast_max_m loses it there; a
+    frame that shows the ground is searched around the estimate first and lost beyond lost_sigma_m."""
+    from aeroloc.flight.filter import FilterConfig, PositionFilter
+
+    cfg = FilterConfig()
+    f = PositionFilter(cfg)
+    f.reset(0.0, 0.0, 5.0)
+    f.est.vx = 40.0
+    t = 0.0
+    while f.est.sigma <= cfg.lost_sigma_m:
+        f.predict_coast(0.5)
+        t += 0.5
+    assert f.lost_now(blind=False) and not f.lost_now(blind=True)
+    assert f.est.x == pytest.approx(40.0 * t)
+    while f.est.sigma <= cfg.coast_max_m:
+        f.predict_coast(0.5)
+    assert f.lost_now(blind=True)
+
+
 def test_baseline_scale_measures_a_short_odometry_chain(flight):
     """Odometry steps 3 % short (a drifted scale) against fixes on the true path: the baselines between fixes
     far enough apart give the correction, and it converges on 1 / 0.97 without overshooting."""
@@ -153,6 +173,21 @@ def test_track_is_accurate_after_the_first_fix_and_recovers_after_the_gap(flight
     with open(out, newline="") as f:
         header = next(csv.reader(f))
     assert header[:7] == ["name", "time", "lat", "lon", "status", "sigma_m", "source"]
+
+
+def test_telemetry_height_and_lens_set_every_frames_ground_resolution(flight, tracked):
+    """The telemetry gives the height above ground and the lens, not a ground resolution: the frame's own one is
+    derived at its width and used on every image-placed point (no carried, drifting scale), so it matches the
+    simulator's true ground resolution as the aircraft climbs and descends."""
+    folder, _, _ = flight
+    points, _, _, _ = tracked
+    truth = _truth(folder)
+    placed = [p for p in points if p.source in ("global fix", "tracked")]
+    assert placed
+    ratios = [p.gsd_m / float(truth[p.name]["gsd_m"]) for p in placed]
+    assert max(abs(r - 1) for r in ratios) < 0.005
+    gsds = [float(truth[p.name]["gsd_m"]) for p in placed]
+    assert max(gsds) / min(gsds) > 1.01  # the height did change along the flight
 
 
 def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path):

@@ -34,9 +34,15 @@ class FilterConfig:
     global_sigma_m: float = 5.0
     gate_sigmas: float = 4.0
     gate_floor_m: float = 10.0
-    max_rejects: int = 6  # fixes rejected (or failed) in a row before the track counts as lost
+    max_rejects: int = 6  # fixes rejected in a row before the track counts as lost (with a confirmed odometry
+    # scale only once the uncertainty is beyond miss_sigma_m too: NAIP telemetry flight, 6 fixes of overlapping
+    # frames over changed ground 45-53 m off a track 6 m off lost it, and the re-localization took their place)
     lost_sigma_m: float = 150.0
-    max_misses: int = 15  # windowed fixes failed in a row (no distinct match) before the track counts as lost
+    max_misses: int = 15  # windowed fixes failed in a row (no distinct match) before the track counts as lost,
+    miss_sigma_m: float = 10.0  # ... once the uncertainty is beyond this too (NAIP: 18 frames over changed ground
+    # without a distinct match while the odometry alone stayed within 5 m: lost on misses, then 200 frames lost)
+    coast_max_m: float = 600.0  # blank frames coast on up to this uncertainty (a position with an honest sigma;
+    # the first frame after them is searched around it), beyond it the track is lost
     max_unfixed_s: float = 20.0  # ... or at least 2 failed and no fix for this long (photos seconds apart)
 
 
@@ -57,17 +63,24 @@ class PositionFilter:
         self.rejects = 0
         self.misses = 0
         self.unfixed_s = 0.0  # seconds since the last fused fix
+        self.checked = False  # whether the last odometry step's scale was confirmed (a height, a baseline)
 
     @property
     def lost(self) -> bool:
+        return self.lost_now(blind=False)
+
+    def lost_now(self, blind: bool) -> bool:
+        """Whether the track is lost; ``blind``: the frame showed nothing (black), so only an uncertainty beyond
+        ``coast_max_m`` loses it (misses and rejections cannot grow without an image)."""
         e = self.est
         c = self.cfg
+        if e is None:
+            return True
         stale = self.misses >= 2 and self.unfixed_s > c.max_unfixed_s
         return (
-            e is None
-            or e.sigma > c.lost_sigma_m
-            or self.rejects >= c.max_rejects
-            or self.misses >= c.max_misses
+            e.sigma > (c.coast_max_m if blind else c.lost_sigma_m)
+            or (self.rejects >= c.max_rejects and (e.sigma > c.miss_sigma_m or not self.checked))
+            or (self.misses >= c.max_misses and e.sigma > c.miss_sigma_m)
             or stale
         )
 
@@ -83,6 +96,7 @@ class PositionFilter:
         ``checked``: whether the scale the step was measured at is confirmed (a height, a baseline)."""
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
+        self.checked = checked
         d = math.hypot(dx, dy)
         if dt > 0 and d > c.speed_max_mps * dt * 1.5:  # an impossible step: the pair matched wrongly
             self.predict_coast(dt)

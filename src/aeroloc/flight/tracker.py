@@ -10,6 +10,7 @@ heading as priors once there was a fix. ``source`` says what placed each point: 
 
 from __future__ import annotations
 
+import ctypes
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -18,7 +19,7 @@ import numpy as np
 
 from aeroloc.core.priors import Priors
 from aeroloc.flight.calibration import BaselineScale, Pose, pose_from_dense, pose_from_homography
-from aeroloc.flight.filter import Estimate, FilterConfig, PositionFilter
+from aeroloc.flight.filter import Estimate, FilterConfig, PositionFilter, _turned
 from aeroloc.flight.frames import FrameRef
 from aeroloc.flight.odometry import Odometry
 from aeroloc.flight.window_fix import WindowConfig, WindowMatcher
@@ -34,7 +35,10 @@ class TrackConfig:
     blank_std: float = 3.0  # a frame whose grey levels vary less than this is blank (black, lens cap, fog)
     relocalize_heading_dps: float = 10.0  # heading prior after a loss widens by this per second lost
     fix_every: int = 2  # while the uncertainty is below a fix's, a windowed fix on every n-th frame only
-    anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track
+    anchor_after: int = 3  # this many rejected fixes in a row that agree with each other re-anchor the track,
+    # only while the odometry's scale is unconfirmed (no metadata, no baseline yet: the filter's sigma may be too
+    # small); with it, 3 fixes of 95 %-overlapping frames agreeing are no evidence (NAIP telemetry flight: they
+    # moved a track 6 m off to 49 m off)
     anchor_spread_px: float = 2.0  # ... agreeing within max(10 m, this many map px)
     anchor_score: float = 0.3  # ... each scoring at least this (NAIP: fixes under 0.3 were 10-45 m off, median 18 m,
     # and three of them, 95 % overlapping frames over the same changed lake shore, 'agreed' on a place 45 m off)
@@ -42,6 +46,11 @@ class TrackConfig:
     fix_score_pow: float = 1.5  # never less: NAIP fixes at 0.45+ were 3 m off (median), at 0.30-0.35 5-18 m (a
     # power of 3 made the track slow to come back after biased stretches: 0.67 within 10 m vs 0.75 at 1.5)
     scale_score: float = 0.35  # fixes at least this good measure the odometry's scale over long baselines
+    scale_fix_score: float = 0.3  # without metadata, accepted fixes at least this good nudge the ground resolution
+    # (until a baseline confirms it)
+    scale_fix_k: float = 0.1  # ... this share of the way to their refined scale (in log)
+    near_scale_k: float = 0.5  # a re-localization around the prediction: this share of the way to its scale (the
+    # aircraft may have climbed or descended while the frames were missing)
     pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
     dense_every: int = 3  # ... and the whole-map dense search on every n-th (the first lost frame included)
     near_share: float = 0.5  # while lost: first search around the last estimate carried on at its velocity, as
@@ -49,10 +58,19 @@ class TrackConfig:
     # last fix when no velocity is known (a resumed run)
     near_min_m: float = 100.0  # ... at least this far (a track lost to rejected fixes was off by tens of metres)
     near_max_px: int = 1200  # working px of the largest such window (beyond: the whole-map search)
+    wide_sigma_m: float = 50.0  # while tracking, an uncertainty beyond this (or a window too large for the tracking
+    # window) is searched as widely as a lost track (every heading since the turn was last measured); the tracking
+    # window's ±4° and its distinctness rule are for a known heading (NAIP: after a 15 s outage, sigma 470 m, the
+    # window clipped by the map's edge still fitted)
     near_inner: float = 0.5  # a peak not distinct over the whole reach is taken when it is distinct within this
     # share of it and is the whole reach's best too: its rivals are all farther from the prediction (less likely)
     near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
     # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
+    vote_frames: int = 4  # ... or the best peak, not distinct, when the best peaks of this many frames in a row
+    # (each scoring >= anchor_score), carried on by the odometry, agree
+    vote_m: float = 15.0  # ... within max(this, 3 map px)
+    vote_turn_deg: float = 6.0  # ... and this turn
+    trim_native: bool = True  # after a whole-map search, native heap returned to the system (glibc malloc_trim)
 
 
 @dataclass
@@ -112,6 +130,24 @@ class TrackPoint:
         )
 
 
+def release_native_memory() -> None:
+    """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``; elsewhere nothing): the
+    whole-map searches of a lost track allocate and free large native arrays (FFT spectra, model buffers), and
+    the freed pages otherwise stay in the process (RSS grew ~100 MB per 100 lost frames)."""
+    global _libc
+    if _libc is None:
+        try:
+            _libc = ctypes.CDLL("libc.so.6")
+            _libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        except (OSError, AttributeError):
+            _libc = False
+    if _libc:
+        _libc.malloc_trim(0)
+
+
+_libc = None
+
+
 class Tracker:
     """Frames in time order -> :class:`TrackPoint`; ``localizer`` is a :class:`aeroloc.localization.Localizer`
     (its map is the map tracked on)."""
@@ -136,9 +172,14 @@ class Tracker:
         self.frames_since_fix = 0
         self.baseline = BaselineScale()  # the odometry's scale from fix-to-fix baselines (frames without a height)
         self.metric = False  # whether this frame's scale came from its own metadata
+        self.scale_settled = False  # a baseline confirmed the scale since the last global fix (fixes stop nudging it)
         self.lost_frames = 0
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
-        self.dead: tuple[Estimate, float] | None = None  # the filter's estimate when the track was lost, and when
+        self.turn_time: float | None = None  # when the pose's turn was last measured (an odometry step, a fix)
+        self.candidates: list[tuple[Pose, float, int]] = []  # recent searched frames' best peaks (carried on by
+        # the odometry), their scores and ages in frames
+        self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
+        # and the pose's turn then
 
     # --- resuming ---------------------------------------------------------------------------------------------
     def restore(self, points: list[TrackPoint]) -> None:
@@ -153,7 +194,7 @@ class Tracker:
             return
         col, row = self.map.latlon_to_pixel(fixed.lat, fixed.lon)
         self.calibration = Pose(float(col), float(row), fixed.heading_deg, fixed.gsd_m / self.gsd)
-        self.cal_time = fixed.time
+        self.cal_time = self.turn_time = fixed.time
         if fixed is not last:
             self.lost_since = last.time
             return
@@ -175,6 +216,7 @@ class Tracker:
         step = None if blank else self.odo(image)
         if blank:
             self.odo.reset()
+        self._carry_candidates(step, None if image is None else (image.shape[1], image.shape[0]))
         if self.filter.est is not None and self.pose is not None:
             point = self._track(ref, image, blank, step, dt)
         elif blank:
@@ -186,6 +228,8 @@ class Tracker:
 
     def _track(self, ref: FrameRef, image, blank: bool, step, dt: float) -> TrackPoint:
         size = None if image is None else (image.shape[1], image.shape[0])
+        own = self._own_gsd(ref, size)
+        self.metric = own is not None  # this frame's scale is its own metadata's, so its step's scale is checked
         moved = False
         if step is not None:
             new = self.pose.moved(step.A, size)
@@ -197,43 +241,73 @@ class Tracker:
             self.pose = new if moved else self.pose
             if moved:
                 self.baseline.moved(self.filter.est.x - before[0], self.filter.est.y - before[1])
-        if not moved:
+                self.turn_time = ref.time
+        if not moved:  # the velocity turns on at the last turn rate, the heading is kept (a drone's camera need not
+            # point where it flies: Toledo photos turned with the coasted velocity missed the ±4° window)
             self.filter.predict_coast(dt)
             self.baseline.broken()
         e = self.filter.est
-        self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, self._frame_scale(ref, size))
+        scale = own / self.gsd if own is not None else self.pose.scale
+        self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, scale)
         reason = "undecodable frame" if image is None else "blank frame" if blank else ""
         source = "tracked" if moved else "coasted"
         self.frames_since_fix += 1
         due = self.frames_since_fix >= self.cfg.fix_every or e.sigma > self.cfg.filter.fix_sigma_m
+        searched = False  # whether this frame was already searched around the estimate as widely as when lost
         if not blank and due:
-            status, fixed = self._window_fix(image, size)
+            if e.sigma <= self.cfg.wide_sigma_m and self.matcher.fits(size, self.pose, e.sigma / self.gsd):
+                status, fixed = self._window_fix(image, size)
+            else:
+                status, fixed = self._wide_fix(ref, image, size)
+                searched = True
             source = "tracked" if (moved or fixed) else "coasted"
             reason = status
-        if self.filter.lost:
-            self.dead = (replace(self.filter.est), ref.time)
+        if self.filter.lost_now(blind=blank):
+            self.dead = (replace(self.filter.est), ref.time, self.pose.turn_deg)
             self.filter.lose()
             self.pose, self.lost_since = None, ref.time
             if not blank:
-                return self._relocalize(ref, image, f"track lost ({reason}); ")
+                return self._relocalize(ref, image, f"track lost ({reason}); ", searched)
             return self._point(ref, "lost", f"track lost ({reason})")
         return self._point(ref, source, reason or ("odometry" if moved else "coasting"))
 
-    def _frame_scale(self, ref: FrameRef, size) -> float:
-        """The pose's scale: the frame's own ground resolution when its metadata gives one (a barometric height
-        and the lens: no drift), else the one the odometry carried (its scale changes compose, and drift)."""
-        self.metric = False
-        if size is not None and ref.priors.known:
-            gsd = ref.priors.with_image_width(size[0]).gsd_m
-            if gsd is not None and gsd > 0:
-                self.metric = True
-                return gsd / self.gsd
-        return self.pose.scale
+    def _own_gsd(self, ref: FrameRef, size) -> float | None:
+        """The frame's ground resolution from its own metadata (a telemetry height and the lens: known only once
+        the frame's width is), metres; None without."""
+        if size is None:
+            return None
+        gsd = ref.priors.with_image_width(size[0]).gsd_m
+        return gsd if gsd is not None and gsd > 0 else None
+
+    def _wide_fix(self, ref: FrameRef, image, size) -> tuple[str, bool]:
+        """The frame searched around the estimate when its uncertainty is too large for the tracking window
+        (after black frames, missing frames, photos far apart): as widely as after a loss (every heading the time
+        since the last measured turn allows, the reach the uncertainty), so the track is back on the first frame
+        that shows the ground instead of being lost first. A fix resets the filter there."""
+        e = self.filter.est
+        self.frames_since_fix = 0
+        priors = self._priors(ref, size[0])
+        reach = max(e.sigma, self.cfg.near_min_m)
+        pose, status = self._near(ref, image, priors, e.x, e.y, reach, self.pose.turn_deg)
+        if pose is None:
+            self.filter.misses += 1
+            return status.replace("the prediction", "the estimate"), False
+        v = _turned(e.vx, e.vy, -math.radians((pose.turn_deg - self.pose.turn_deg + 180.0) % 360.0 - 180.0))
+        self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
+        self.filter.est.vx, self.filter.est.vy = v
+        self.pose = self.calibration = pose
+        self.cal_time = self.turn_time = ref.time
+        self.rejected.clear()
+        self.candidates.clear()
+        self.baseline.broken()
+        self.baseline.checked = self.scale_settled = False
+        return status.replace("re-localized near the prediction", "re-localized around the estimate"), True
 
     def _window_fix(self, image, size) -> tuple[str, bool]:
         """Match the frame around the prediction and gate the fix; (status, whether a fix was fused)."""
         from aeroloc.flight.calibration import blend
 
+        at_scale = self.pose.scale
         fix = self.matcher(image, self.pose, self.filter.est.sigma / self.gsd)
         self.frames_since_fix = 0
         if fix is None:
@@ -246,7 +320,8 @@ class Tracker:
         ok, d = self.filter.update(fix.x * self.gsd, fix.y * self.gsd, sigma_fix)
         if not ok:
             status = f"fix rejected: {d:.0f} m from the prediction (gate {self.filter.gate(sigma_fix):.0f} m)"
-            if fix.score < self.cfg.anchor_score or not self._reanchor(offset, fix, sigma_fix):
+            checked = self.metric or self.baseline.checked  # the odometry's scale, so the filter's sigma, honest
+            if checked or fix.score < self.cfg.anchor_score or not self._reanchor(offset, fix, sigma_fix):
                 return status, False
             self.baseline.broken()
             status = f"re-anchored: {self.cfg.anchor_after} rejected fixes agreed ({d:.0f} m from the prediction)"
@@ -256,14 +331,23 @@ class Tracker:
             if fix.score >= self.cfg.scale_score and not self.metric:
                 k = self.baseline.fix(fix.x * self.gsd, fix.y * self.gsd)
                 if k is not None:
+                    self.scale_settled = self.scale_settled or self.baseline.checked
                     self.pose = replace(self.pose, scale=self.pose.scale * k)
                     status += f", scale x{k:.3f} from the baseline"
         e = self.filter.est
-        # position only, the heading nudged: the dense refinement's scale and turn come in 3 % / 2° steps and
-        # were biased on NAIP flights (scales 0.94-0.97 preferred at the true pose), while the odometry's
-        # scale stayed within 1 % of the truth, so the ground resolution is carried by the odometry
+        # the heading nudged, and without metadata the ground resolution until the first baseline after a global
+        # fix confirms it: the dense refinement's scale comes in 3 % steps (0.94-1.06) and is noisy frame to frame,
+        # unbiased over a flight (NAIP, 42 frames placed at the true pose: median found / true 1.000; given 4 % too
+        # small or large, 0.989 and 1.009) but not over changed ground (NAIP frames 80-130, lake shores: it pulled
+        # a confirmed scale 2.6 % low, the track 34 m off), so a small share per fix carries a scale that was wrong
+        # after a gap (+4 %) back to the truth within ~10 fixes, and the baselines keep it after
+        scale = None
+        if ok and not self.metric and not self.scale_settled and fix.score >= self.cfg.scale_fix_score:
+            scale = self.pose.scale * (fix.scale / at_scale)
         self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, fix.turn_deg, None, k=0.1)
-        self.calibration, self.cal_time = self.pose, self.prev_time
+        if scale is not None:
+            self.pose = blend(self.pose, self.pose.x, self.pose.y, None, scale, k=self.cfg.scale_fix_k)
+        self.calibration, self.cal_time, self.turn_time = self.pose, self.prev_time, self.prev_time
         return status, True
 
     def _fix_sigma(self, score: float) -> float:
@@ -292,7 +376,7 @@ class Tracker:
     def _priors(self, ref: FrameRef, width: int) -> Priors:
         """The frame's own priors, else the carried calibration: ground resolution ±25 %, heading widening with
         the time since the last fix (the aircraft may have turned meanwhile)."""
-        p = ref.priors.with_image_width(width) if ref.priors.known else ref.priors
+        p = ref.priors.with_image_width(width)  # a camera's height and lens give a resolution only with the width
         cal = self.calibration
         if cal is None:
             return p
@@ -310,33 +394,44 @@ class Tracker:
             heading_source="carried",
         )
 
-    def _relocalize(self, ref: FrameRef, image, note: str = "") -> TrackPoint:
+    def _relocalize(self, ref: FrameRef, image, note: str = "", searched: bool = False) -> TrackPoint:
         """A fix without a prediction: first around the last fix (as far as the aircraft can have flown), then
         the dense stage over the whole map when a ground resolution is known (the frame's prior or the carried
         calibration) on every ``dense_every``-th lost frame, and the full single-image pipeline at the start and on
-        every ``pipeline_every``-th lost frame (both cost seconds a frame: the frames between report lost at once)."""
+        every ``pipeline_every``-th lost frame (both cost seconds a frame: the frames between report lost at once).
+        ``searched``: this frame was already searched around the estimate (:meth:`_wide_fix`)."""
         size = (image.shape[1], image.shape[0])
         priors = self._priors(ref, size[0])
         self.lost_frames += 1
         pose, status = None, "not localized"
-        if self.calibration is not None and self.cal_time is not None:
+        if self.calibration is not None and self.cal_time is not None and not searched:
             pose, status = self._near_last_fix(ref, image, priors)
         dense_due = (self.lost_frames - 1) % self.cfg.dense_every == 0
+        whole_map = False
         if pose is None and dense_due and priors.gsd_m is not None and self.localizer.dense is not None:
             pose, status = self._dense_global(image, priors)
+            whole_map = True
         if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
             loc = self.localizer(ref.name, image, priors=priors)
             pose = self._pose_of(loc, size) if loc.localized else None
             if pose is None and loc.localized:  # a fix without a turn or scale (the sweep's): found in a window
                 pose = self._pose_at(loc, image, priors)
             status = loc.status or status
+            whole_map = True
+        if whole_map and self.cfg.trim_native:
+            release_native_memory()
         if pose is None:
             return self._point(ref, "lost", note + status)
+        own = self._own_gsd(ref, size)
+        if own is not None:  # the frame's metadata, not the match's coarse scale ladder
+            pose = replace(pose, scale=own / self.gsd)
         self.pose = self.calibration = pose
         self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
+        self.turn_time = ref.time
         self.rejected.clear()
+        self.candidates.clear()
         self.baseline.broken()
-        self.baseline.checked = False
+        self.baseline.checked = self.scale_settled = False
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
 
@@ -346,7 +441,7 @@ class Tracker:
         fix within the whole speed bound."""
         f = self.cfg.filter
         if self.dead is not None:
-            e, t0 = self.dead
+            e, t0, _ = self.dead
             dt = max(0.0, t - t0)
             reach = max(e.sigma, self.cfg.near_min_m) + self.cfg.near_share * f.speed_max_mps * dt
             return e.x + e.vx * dt, e.y + e.vy * dt, reach
@@ -356,30 +451,88 @@ class Tracker:
 
     def _near_last_fix(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
         """The frame searched around the predicted position (:meth:`_near_prediction`) before any whole-map
-        search, every heading the prior allows, the ground resolution carried (or the frame's own); a best peak
-        with a rival elsewhere in the reach is taken when it is also distinct within ``near_inner`` of it."""
-        cal, k = self.calibration, self.cfg.window.sigma_k
+        search (:meth:`_near`), the turn carried on at the last turn rate."""
         x, y, reach_m = self._near_prediction(ref.time)
+        if self.dead is not None:
+            e, t0, turn = self.dead
+            turn -= e.turn_dps * max(0.0, ref.time - t0)
+        else:
+            turn = self.calibration.turn_deg
+        return self._near(ref, image, priors, x, y, reach_m, turn)
+
+    def _near(
+        self, ref: FrameRef, image, priors: Priors, x: float, y: float, reach_m: float, turn: float
+    ) -> tuple[Pose | None, str]:
+        """The frame searched within ``reach_m`` of (``x``, ``y``) metres, at every heading the frame's own prior
+        allows, else around ``turn`` within 15° + ``relocalize_heading_dps`` x the seconds since the turn was last
+        measured, the ground resolution the frame's own (or carried); a best peak with a rival elsewhere in the
+        reach is taken when it is also distinct within ``near_inner`` of it."""
+        cal, k = self.calibration, self.cfg.window.sigma_k
         scale = priors.gsd_m / self.gsd if priors.gsd_m is not None else cal.scale
-        pose = Pose(x / self.gsd, y / self.gsd, cal.turn_deg, scale)
-        angles = priors.heading_search() or (cal.turn_deg,)
+        pose = Pose(x / self.gsd, y / self.gsd, turn, scale)
+        if ref.priors.heading_deg is None:
+            since = self.turn_time if self.turn_time is not None else self.cal_time
+            age = 0.0 if since is None else max(0.0, ref.time - since)
+            tol = min(180.0, 15.0 + self.cfg.relocalize_heading_dps * age)
+            priors = replace(priors, heading_deg=turn % 360.0, heading_tol_deg=tol)
+        angles = priors.heading_search() or (turn,)
 
         def search(reach: float, ratio: float):
             return self.matcher(image, pose, reach / k / self.gsd, angles, self.cfg.near_max_px, ratio)
 
         fix, where = search(reach_m, 1.0), ""
         if fix is not None and not fix.ratio >= self.cfg.near_ratio:
+            best = fix
             inner = search(reach_m * self.cfg.near_inner, self.cfg.near_ratio)
             same = inner is not None and math.hypot(inner.x - fix.x, inner.y - fix.y) * self.gsd <= max(
                 10.0, 2 * self.gsd
             )
             fix, where = (inner, f", distinct within {reach_m * self.cfg.near_inner:.0f} m") if same else (None, "")
+            agree = self._vote(Pose(best.x, best.y, best.turn_deg, scale), best.score)
+            if fix is None and agree:
+                fix, where = best, f", the best peak of {agree} frames in a row"
         if fix is None:
             return None, f"not localized: nothing distinct within {reach_m:.0f} m of the prediction"
         status = (
             f"re-localized near the prediction (score {fix.score:.2f}, ratio {fix.ratio:.2f}, {reach_m:.0f} m{where})"
         )
-        return Pose(fix.x, fix.y, fix.turn_deg, pose.scale), status
+        scale = pose.scale
+        if self._own_gsd(ref, (image.shape[1], image.shape[0])) is None:
+            scale *= (fix.scale / pose.scale) ** self.cfg.near_scale_k
+        return Pose(fix.x, fix.y, fix.turn_deg, scale), status
+
+    def _vote(self, pose: Pose, score: float) -> int:
+        """Record a searched frame's best but not distinct peak; ``vote_frames`` when the best peaks of that many
+        searched frames in a row (this one the last), carried to this frame by the odometry, each scoring at least
+        ``anchor_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
+        and it can move with the frames: NAIP, after a 15 s outage in a turn, the best peaks of frames 1, 2 and 4
+        after it agreed on a place 590 m off (ratios 1.01-1.05), those of 3, 5, 6, 7 and 8 on the truth (5-11 m
+        off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one."""
+        self.candidates.append((pose, score, 0))
+        tol = max(self.cfg.vote_m, 3 * self.gsd) / self.gsd
+        recent = self.candidates[-self.cfg.vote_frames :]
+        agree = len(recent) == self.cfg.vote_frames and all(
+            sc >= self.cfg.anchor_score
+            and math.hypot(c.x - pose.x, c.y - pose.y) <= tol
+            and abs((c.turn_deg - pose.turn_deg + 180.0) % 360.0 - 180.0) <= self.cfg.vote_turn_deg
+            for c, sc, _ in recent
+        )
+        if agree:
+            self.candidates.clear()
+            return self.cfg.vote_frames
+        return 0
+
+    def _carry_candidates(self, step, size) -> None:
+        """The recent frames' best peaks moved on with this frame's odometry step (dropped without one, or once
+        older than ``vote_frames`` frames)."""
+        if not self.candidates:
+            return
+        if step is None:
+            self.candidates.clear()
+            return
+        self.candidates = [
+            (c.moved(step.A, size), sc, age + 1) for c, sc, age in self.candidates if age + 1 < self.cfg.vote_frames
+        ]
 
     def _dense_global(self, image, priors: Priors) -> tuple[Pose | None, str]:
         """The dense stage over the whole map (or the retrieved tiles' region when the map is too large) at the

@@ -88,6 +88,15 @@ class WindowMatcher:
             return None
         return c0, r0, c1, r1
 
+    def fits(self, size: tuple[int, int], pose: Pose, sigma_px: float, max_px: int | None = None) -> bool:
+        """Whether the window around ``pose`` for ``sigma_px`` is on the map and at most ``max_px`` (default
+        ``max_window_px``) working px wide: beyond, a wider search's job."""
+        box = self.window(pose, size, sigma_px)
+        if box is None:
+            return False
+        f = self._levels(pose, size)
+        return max(box[2] - box[0], box[3] - box[1]) * f <= (max_px or self.cfg.max_window_px)
+
     def __call__(
         self,
         image: np.ndarray,
@@ -101,12 +110,10 @@ class WindowMatcher:
         ``angles`` (default the pose's turn ± ``turn_span``), ``max_px`` and ``min_ratio`` widen the search for a
         re-localization around the last position."""
         size = (image.shape[1], image.shape[0])
+        if not self.fits(size, pose, sigma_px, max_px):
+            return None
         box = self.window(pose, size, sigma_px)
-        if box is None:
-            return None
         f = self._levels(pose, size)
-        if max(box[2] - box[0], box[3] - box[1]) * f > (max_px or self.cfg.max_window_px):
-            return None
         rgb, valid, ox, oy = self._read(*box, f)
         qk = pose.scale * f  # frame px -> working px
         query = cv2.resize(image, None, fx=qk, fy=qk, interpolation=cv2.INTER_AREA)

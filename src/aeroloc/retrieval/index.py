@@ -156,13 +156,19 @@ class RerankIndex:
         import faiss
 
         q = np.ascontiguousarray(q, dtype=np.float32)
-        _, cand = self.coarse.search(q, min(max(self.candidates, k), self.ntotal))
+        threads = faiss.omp_get_max_threads()
+        # one thread for the re-rank (a few hundred rows per query) and for the coarse search of a few queries
+        # (one PCA product and one graph walk each): OpenMP threads waiting for a core made a query 4x slower on
+        # the busy machine (20 ms instead of 5 at 200 candidates, load 10; the PCA of one query 7.6 ms, not 2.8)
+        if len(q) < SMALL_BATCH:
+            faiss.omp_set_num_threads(1)
+        try:
+            _, cand = self.coarse.search(q, min(max(self.candidates, k), self.ntotal))
+        finally:
+            faiss.omp_set_num_threads(threads)
         scores = np.full((len(q), k), -np.inf, np.float32)
         ids = np.full((len(q), k), -1, np.int64)
         exact = faiss.IndexScalarQuantizer(self.d, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_INNER_PRODUCT)
-        threads = faiss.omp_get_max_threads()
-        # one thread: a few hundred rows per query are microseconds of work, and OpenMP threads waiting for a
-        # core made a query 4x slower on a busy machine (20 ms instead of 5 at 200 candidates, load 10)
         faiss.omp_set_num_threads(1)
         try:
             for i, c in enumerate(cand):
@@ -190,6 +196,7 @@ PCA_TRAIN_MAX = 4_000  # rows the PCA is fitted on (4000 x 8192 float32: 131 MB)
 # above FLAT_MAX: a compact coarse index and an exact re-rank of its best RERANK_CANDIDATES from the store
 COARSE = "PCA1024,L2norm,HNSW32,SQ8"
 RERANK_CANDIDATES = 400
+SMALL_BATCH = 8  # fewer queries than this are searched on one thread (see RerankIndex.search)
 _RERANK = re.compile(r"^(?P<coarse>.+),Rerank(?P<r>\d+)$")
 
 

@@ -49,6 +49,10 @@ class TrackConfig:
     scale_fix_score: float = 0.3  # without metadata, accepted fixes at least this good nudge the ground resolution
     # (until a baseline confirms it)
     scale_fix_k: float = 0.1  # ... this share of the way to their refined scale (in log)
+    scale_first_fixes: int = 3  # ... the first this many after a global fix refined over scale_first_ladder and
+    scale_first_k: float = 0.5  # ... taken this share of the way (NAIP: the pipeline's first fix 8 % small, k = 0.1
+    # from the tracking ladder left it 3-4 % small for 30 frames, the track 20-29 m off over changed ground)
+    scale_first_ladder: tuple[float, ...] = (0.85, 0.88, 0.91, 0.94, 0.97, 1.03, 1.06, 1.09, 1.12, 1.15)
     near_scale_k: float = 0.5  # a re-localization around the prediction: this share of the way to its scale (the
     # aircraft may have climbed or descended while the frames were missing)
     pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
@@ -173,6 +177,7 @@ class Tracker:
         self.baseline = BaselineScale()  # the odometry's scale from fix-to-fix baselines (frames without a height)
         self.metric = False  # whether this frame's scale came from its own metadata
         self.scale_settled = False  # a baseline confirmed the scale since the last global fix (fixes stop nudging it)
+        self.scale_fixes = 0  # windowed fixes that nudged the scale since the last global fix
         self.lost_frames = 0
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
         self.turn_time: float | None = None  # when the pose's turn was last measured (an odometry step, a fix)
@@ -301,6 +306,7 @@ class Tracker:
         self.candidates.clear()
         self.baseline.broken()
         self.baseline.checked = self.scale_settled = False
+        self.scale_fixes = 0
         return status.replace("re-localized near the prediction", "re-localized around the estimate"), True
 
     def _window_fix(self, image, size) -> tuple[str, bool]:
@@ -308,7 +314,9 @@ class Tracker:
         from aeroloc.flight.calibration import blend
 
         at_scale = self.pose.scale
-        fix = self.matcher(image, self.pose, self.filter.est.sigma / self.gsd)
+        first = not self.metric and not self.scale_settled and self.scale_fixes < self.cfg.scale_first_fixes
+        wide = self.cfg.scale_first_ladder if first else None
+        fix = self.matcher(image, self.pose, self.filter.est.sigma / self.gsd, scales=wide)
         self.frames_since_fix = 0
         if fix is None:
             self.filter.misses += 1
@@ -346,7 +354,9 @@ class Tracker:
             scale = self.pose.scale * (fix.scale / at_scale)
         self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, fix.turn_deg, None, k=0.1)
         if scale is not None:
-            self.pose = blend(self.pose, self.pose.x, self.pose.y, None, scale, k=self.cfg.scale_fix_k)
+            k = self.cfg.scale_first_k if first else self.cfg.scale_fix_k
+            self.pose = blend(self.pose, self.pose.x, self.pose.y, None, scale, k=k)
+            self.scale_fixes += 1
         self.calibration, self.cal_time, self.turn_time = self.pose, self.prev_time, self.prev_time
         return status, True
 
@@ -432,6 +442,7 @@ class Tracker:
         self.candidates.clear()
         self.baseline.broken()
         self.baseline.checked = self.scale_settled = False
+        self.scale_fixes = 0
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         return self._point(ref, "global fix", note + status)
 

@@ -105,10 +105,11 @@ class WindowMatcher:
         angles=None,
         max_px: int | None = None,
         min_ratio: float | None = None,
+        scales: tuple[float, ...] | None = None,
     ) -> WindowFix | None:
         """The frame placed in the window around ``pose``; None when nothing distinct was found there.
         ``angles`` (default the pose's turn ± ``turn_span``), ``max_px`` and ``min_ratio`` widen the search for a
-        re-localization around the last position."""
+        re-localization around the last position; ``scales`` (default ``scales`` of the config) the refinement's."""
         size = (image.shape[1], image.shape[0])
         if not self.fits(size, pose, sigma_px, max_px):
             return None
@@ -121,7 +122,7 @@ class WindowMatcher:
         c = self.cfg
         t = pose.turn_deg
         angles = (t - c.turn_span, t, t + c.turn_span) if angles is None else angles
-        m = region.locate(query, angles=angles, scales=c.scales)
+        m = region.locate(query, angles=angles, scales=c.scales if scales is None else scales)
         ratio = c.min_ratio if min_ratio is None else min_ratio
         broad = self.cfg.sigma_k * sigma_px > 0.5 * max(size) * pose.scale  # the window holds other placements
         score = c.broad_score if broad else c.min_score

@@ -28,7 +28,6 @@ from aeroloc.core import geo
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.io import atomic_path
 from aeroloc.maps.sources import Map, open_map
-from aeroloc.maps.windows import content_hash
 
 DEFAULT_BASE_PX = 256
 TILES_CSV = "tiles.csv"
@@ -359,6 +358,13 @@ def _table(ids, paths, tr: np.ndarray, w: np.ndarray, h: np.ndarray, fixed, crs:
     ]
 
 
+def write_grid_csv(path: Path, grid: TileGrid) -> None:
+    """tiles.csv of ``grid`` from :meth:`TileGrid.csv_chunks`, renamed into place when complete."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        for chunk in grid.csv_chunks():
+            f.write(chunk)
+
+
 def write_tiles_csv(path: Path, table: list[list]) -> None:
     """tiles.csv from ``tile_table`` rows (a plain csv writer: the same bytes as a DictWriter of the dicts),
     renamed into place when complete."""
@@ -427,6 +433,8 @@ def write_tiles(
     atomically), and an existing database with the same map and parameters is a cache hit. ``tiles.csv`` is
     written last, so a half-built folder is never taken for a complete one.
     """
+    from aeroloc.maps.windows import map_reference
+
     m = map_path if isinstance(map_path, Map) else open_map(map_path)
     grid = TileGrid(m, zoom, overlap, tile_m)
     out = Path(out_dir)
@@ -437,44 +445,26 @@ def write_tiles(
     for stale in (out / TILES_CSV, out / TILES_JSON):
         stale.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    if not write_images:
-        return _write_windows_db(m, grid, out, report, t0)
-    _discard_other_partial_build(out, report)
-    (out / "images").mkdir(parents=True, exist_ok=True)
-    (out / BUILDING_JSON).write_text(json.dumps(_build_key(report)))
-    rows, nbytes = _render(m, list(grid), out, progress)
+    if write_images:
+        _discard_other_partial_build(out, report)
+        (out / "images").mkdir(parents=True, exist_ok=True)
+        (out / BUILDING_JSON).write_text(json.dumps(_build_key(report)))
+        rows, nbytes = _render(m, list(grid), out, progress)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        rows, nbytes = None, 0
     report = replace(
         report,
-        map={**report.map, "content_sha1": content_hash(m, grid)},
+        map={**report.map, "content_sha1": map_reference(m, grid)["content_sha1"]},
         build_s=round(time.perf_counter() - t0, 3),
         image_bytes=nbytes,
     )
     (out / TILES_JSON).write_text(json.dumps(report.to_json(), indent=1))
-    write_tiles_csv(out / TILES_CSV, rows)  # last: its presence marks a finished tile set
+    if rows is None:  # last: its presence marks a finished tile set
+        write_grid_csv(out / TILES_CSV, grid)
+    else:
+        write_tiles_csv(out / TILES_CSV, rows)
     (out / BUILDING_JSON).unlink(missing_ok=True)
-    return report
-
-
-def _write_windows_db(m: Map, grid: TileGrid, out: Path, report: TilesReport, t0: float) -> TilesReport:
-    """tiles.json and tiles.csv of a database without images. The map's content hash is computed on a second
-    thread while the grid's rows are written (reading files and SHA-1 release the GIL: on a map never hashed
-    before, the hash of a 6-file seed map was ~10 ms of a ~20 ms call); tiles.csv is renamed into place last."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    out.mkdir(parents=True, exist_ok=True)
-    with ThreadPoolExecutor(1) as pool:
-        digest = pool.submit(content_hash, m, grid)
-        with atomic_path(out / TILES_CSV) as tmp:
-            with open(tmp, "w", newline="") as f:
-                for chunk in grid.csv_chunks():
-                    f.write(chunk)
-            report = replace(
-                report,
-                map={**report.map, "content_sha1": digest.result()},
-                build_s=round(time.perf_counter() - t0, 3),
-                image_bytes=0,
-            )
-            (out / TILES_JSON).write_text(json.dumps(report.to_json(), indent=1))
     return report
 
 

@@ -2,7 +2,8 @@
 benchmarks/flights.py) is tracked normally up to --start, then every frame is searched as a lost track's is (around
 the prediction, the whole-map dense stage every 3rd frame, the single-image pipeline every 10th) and the track is
 kept lost, so the whole-map searches run --frames times in a row. Prints RSS (MB) and CPU seconds every --every
-frames, with the native heap returned after each whole-map search (the default) or not (--no-trim).
+frames, with the native heap returned after each whole-map search (the default) or not (--no-trim);
+--whole-map skips the search around the prediction (over ground it can place, it would end the loss at once).
 
 usage: nice python benchmarks/flight_memory.py experiments/flights.yaml --only naip-telemetry [--no-trim]
 """
@@ -41,6 +42,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=60, help="frames then searched as lost")
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--no-trim", action="store_true", help="keep freed native memory (no malloc_trim)")
+    ap.add_argument(
+        "--whole-map", action="store_true", help="no search around the prediction: only the whole-map searches"
+    )
     args = ap.parse_args(argv)
     conf = yaml.safe_load(Path(args.experiments).read_text())
     f = next(f for f in conf["flights"] if args.only in f["name"] and f["kind"] == "simulated")
@@ -53,6 +57,7 @@ def main(argv=None) -> int:
         filter=replace(FilterConfig(), speed_max_mps=f.get("speed_max", 60.0)), trim_native=not args.no_trim
     )
     tracker = Tracker(Localizer(Database(f["db"])), config)
+    lost_config = replace(config, near_max_px=1) if args.whole_map else config  # windows never fit: none searched
     print(f"| frame | state | RSS MB | CPU s |  (trim {'off' if args.no_trim else 'on'})")
     lost = 0
     cpu0 = None
@@ -64,6 +69,7 @@ def main(argv=None) -> int:
             break
         if cpu0 is None:
             cpu0 = time.process_time()
+            tracker.cfg = lost_config
             print(f"| {i} | tracked to here | {rss_mb():.0f} | 0 |", flush=True)
         if image is None or float(image.std()) < 3.0:
             continue

@@ -443,3 +443,16 @@ def test_a_changed_raw_tile_of_a_folder_map_is_refused_after_caching(tmp_path, n
     os.utime(raw, ns=(st.st_atime_ns, st.st_mtime_ns))
     with pytest.raises(AerolocError, match="pixels changed since the tile grid was made"):
         TileSource(tmp_path / "db").image(0)
+
+
+def test_the_hash_cache_lives_beside_the_weights_cache(monkeypatch, tmp_path):
+    """$AEROLOC_CACHE, else $XDG_CACHE_HOME/aeroloc: the same root as the weights cache."""
+    from aeroloc.core.weights import cache_dir
+    from aeroloc.maps.windows import hash_cache_dir
+
+    for env in ({"AEROLOC_CACHE": str(tmp_path / "a")}, {"XDG_CACHE_HOME": str(tmp_path / "x")}):
+        monkeypatch.delenv("AEROLOC_CACHE", raising=False)
+        monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+        for k, v in env.items():
+            monkeypatch.setenv(k, v)
+        assert hash_cache_dir() == cache_dir().parent / "map-hashes"

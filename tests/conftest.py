@@ -11,6 +11,15 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("AEROLOC_DATA", REPO.parent / "shared" / "data"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_cache(tmp_path_factory):
+    """The suite's own $AEROLOC_CACHE (map hashes, downloaded weights): tests never write into the user's
+    ~/.cache/aeroloc, and a hash cached there by another checkout can't make a test pass."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("AEROLOC_CACHE", str(tmp_path_factory.mktemp("aeroloc-cache")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not DATA.is_dir():

@@ -156,21 +156,25 @@ class Reranker:
             a = self._orientation[tile_id] = dominant_orientation(self.db.tile_image(tile_id))[0]
         return a
 
-    def _families(self, image: np.ndarray, cands: list[Candidate]) -> dict[str, list[int]]:
-        """Per candidate, the rotations to screen when the heading is unknown: the quarter turns, and the diagonals
-        (4-7) before them when the query's cross lies nearer 45° than 0° off the tile's
+    def _families(self, image: np.ndarray):
+        """A function: tile id -> the rotations to screen it at when the heading is unknown: the quarter turns,
+        and the diagonals (4-7) before them when the query's cross lies nearer 45° than 0° off the tile's
         (aeroloc.matching.orientation). Later candidates, while the heading is not settled, are screened at
         their own list: the diagonals are added, never traded for a quarter turn (screening only the estimated
-        family lost a szada-hu query whose tile's cross was 35° off its true turn)."""
+        family lost a szada-hu query whose tile's cross was 35° off its true turn). Orientations are computed
+        on first use, so a photo settled at the upright turn reads no tile image for them."""
         from aeroloc.matching.orientation import dominant_orientation, residual_turn
 
-        qa = dominant_orientation(image)[0]
         quarter, diagonal = [0, 1, 2, 3], [DIAGONAL + k for k in range(4)]
-        out = {}
-        for c in cands:
-            diag = abs(residual_turn(qa, self.tile_orientation(c.tile_id))) > 22.5
-            out[c.tile_id] = diagonal + quarter if diag else quarter
-        return out
+        query: list[float] = []
+
+        def family(tile_id: str) -> list[int]:
+            if not query:
+                query.append(dominant_orientation(image)[0])
+            diag = abs(residual_turn(query[0], self.tile_orientation(tile_id))) > 22.5
+            return diagonal + quarter if diag else quarter
+
+        return family
 
     def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict, families=None) -> int:
         """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
@@ -194,18 +198,22 @@ class Reranker:
             return c.screen >= c_["early_exit"]
 
         probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]) :]
-        # every rotation on the probe, the first candidate's family first, but upright first of all: most photos
-        # are near north-up, and then it costs one extraction
-        if families:
-            first = families[probe[0].tile_id]
-            order = [0] + [r for r in first if r != 0] + [r for r in range(2 * DIAGONAL) if r not in first]
-        for k in order if families else rots:
+
+        def probe_order():
+            # every rotation on the probe, the first candidate's family first, but upright first of all: most
+            # photos are near north-up, and then it costs one extraction
+            yield 0
+            first = families(probe[0].tile_id)
+            yield from [r for r in first if r != 0] + [r for r in range(2 * DIAGONAL) if r not in first]
+
+        for k in probe_order() if families else rots:
             if any(screen(c, k) for c in probe):
                 return n
             if best["score"] >= c_["min_screen"]:
                 break
         for c in rest:
-            own = families[c.tile_id] if families else rots
+            settled = best["score"] >= c_["min_screen"]
+            own = families(c.tile_id) if families and not settled else rots  # settled: its turn alone
             for k in [best["rot"]] + [r for r in own if r != best["rot"]]:
                 if k != best["rot"] and best["score"] >= c_["min_screen"]:
                     break  # the heading is settled
@@ -234,7 +242,7 @@ class Reranker:
 
         if self.conf["screen"]:
             unknown = rotations is None and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
-            families = self._families(image, cands) if unknown and cands else None
+            families = self._families(image) if unknown and cands else None
             n_screened = self._screen(cands, rots, features, tfs, families)
             screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
             accept = self.conf["accept_screen"]

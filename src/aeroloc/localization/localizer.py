@@ -83,15 +83,18 @@ class Localizer:
         return {"query_gsd": gsd, "angles": angles, "scales": scales, "verify": verify}
 
     def _dense_confirmed(self, image: np.ndarray, d, out: Localization) -> bool:
-        """Whether local features agree with the dense answer ``d``: the query, turned by the quarter turn nearest
-        the dense heading, matched against the tiles that contain the dense position, aligns within
+        """Whether local features agree with the dense answer ``d``: the query, turned by the turn (quarter or,
+        with the re-ranker's diagonals, eighth) nearest the dense heading, matched against the tiles that contain the dense position, aligns within
         max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation."""
         if self.reranker is None:
             return False
         from aeroloc.core import geo
 
         tiles = self._tiles_around(d.col, d.row, [])[:3]
-        rr = self.reranker(image, tiles, 1, rotations=[round(d.match.angle / 90.0) % 4])
+        from aeroloc.matching.features import turns_within
+
+        turn = turns_within(d.match.angle, 180.0, self._diagonals)[:1]
+        rr = self.reranker(image, tiles, 1, rotations=turn)
         _add_times(out, rr.times_ms)
         best = rr.candidates[0]
         a = self._align_best(image, best)
@@ -105,10 +108,11 @@ class Localizer:
         r = self.retriever(image, top_n)
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
         known = priors is not None and priors.known
-        if known and self.sweep is not None:  # a heading or scale prior: the sweep narrows to it, then the cascade
-            if self._sweep_fix(image, priors, out, r.tile_ids, top_k):
-                return out
+        if known and self.sweep is not None and self.reranker is not None:
+            # a heading or scale prior: the cascade at the turns the heading allows, then the sweep narrowed to it
             self._cascade(image, r.tile_ids, top_k, priors, out)
+            if not out.localized and AMBIGUOUS not in out.status:
+                self._sweep_fix(image, priors, out, r.tile_ids, top_k)
             return out
         dense_ms = 0.0
         search = self.dense_search(image, priors)
@@ -140,7 +144,7 @@ class Localizer:
 
     def _cascade(self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms: float = 0.0):
         """Re-rank the retrieved tiles at the quarter turns the heading allows, align the best one into ``out``."""
-        rr = self.reranker(image, tile_ids, top_k, rotations=prior_rotations(priors))
+        rr = self.reranker(image, tile_ids, top_k, rotations=prior_rotations(priors, self._diagonals))
         _add_times(out, rr.times_ms)
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
@@ -261,6 +265,11 @@ class Localizer:
         taken = set(ids)
         return ids + [t for t in retrieved if t not in taken]
 
+    @property
+    def _diagonals(self) -> bool:
+        """Whether the re-ranker turns queries by 45° too (its conf's ``diagonals``), so turns are 45° apart."""
+        return bool(self.reranker is not None and self.reranker.conf.get("diagonals"))
+
     @cached_property
     def dense(self):
         """The dense structural stage (aeroloc.localization.dense_stage) when the queries' ground resolution is known, else None;
@@ -289,20 +298,21 @@ class Localizer:
         return open_map_for_refine(self.db.info["map"]["path"])
 
 
-def prior_rotations(priors) -> list[int] | None:
-    """The quarter turns (np.rot90's k, as the re-ranker uses them) worth trying for a heading prior: those that
-    some heading within the tolerance lies within 45° of, nearest first; None (the re-ranker's own) when the
-    heading is unknown or so uncertain that every quarter qualifies. Checked on NAIP dev-rotated: a query heading h matches at
-    k = round(h / 90) mod 4 (h = 246°: 122 screen inliers at k = 3, <= 9 at the other three)."""
+def prior_rotations(priors, diagonals: bool = True) -> list[int] | None:
+    """The rotations (aeroloc.matching.features.rotation_angle's indices, as the re-ranker uses them) worth
+    trying for a heading prior: every turn that some heading within the tolerance lies within half a step of
+    (22.5° with the diagonals, 45° with quarter turns only), nearest first; None (the re-ranker's own) when
+    the heading is unknown or so uncertain that every turn qualifies. So the true heading is never more than
+    half a step off a turn tried: with quarter turns only a heading near a diagonal (45° ± 15°) left 30-45° of
+    residual turn, where the matchers break. Checked on NAIP dev-rotated: a query heading h matches at the
+    turn nearest h (h = 246°: 122 screen inliers at 270°, <= 9 at 0°, 90°, 180°)."""
     if priors is None or priors.heading_deg is None:
         return None
-    h, tol = priors.heading_deg, priors.heading_tol_deg
+    from aeroloc.matching.features import DIAGONAL, turns_within
 
-    def off(k: int) -> float:
-        return abs((h - 90.0 * k + 180.0) % 360.0 - 180.0)
-
-    ks = sorted((k for k in range(4) if off(k) <= 45.0 + tol), key=off)
-    return ks if len(ks) < 4 else None
+    half_step = 22.5 if diagonals else 45.0
+    ks = turns_within(priors.heading_deg, half_step + priors.heading_tol_deg, diagonals)
+    return ks if len(ks) < (2 if diagonals else 1) * DIAGONAL else None
 
 
 def _add_times(out: Localization, times_ms: dict) -> None:

@@ -42,6 +42,20 @@ def rotation_angle(rot_k: int) -> float:
     return 90.0 * (rot_k % 4) + (45.0 if rot_k % 8 >= DIAGONAL else 0.0)
 
 
+def turn_gap(angle_deg: float, rot_k: int) -> float:
+    """Degrees (0-180) between a heading-like turn ``angle_deg`` and rotation index ``rot_k``'s."""
+    return abs((angle_deg - rotation_angle(rot_k) + 180.0) % 360.0 - 180.0)
+
+
+def turns_within(angle_deg: float, reach_deg: float, diagonals: bool = True) -> list[int]:
+    """The rotation indices (quarter turns 0-3, with ``diagonals`` also 4-7) within ``reach_deg`` of
+    ``angle_deg``, nearest first (a tie: the quarter turn, the lossless one)."""
+    ks = range(2 * DIAGONAL) if diagonals else range(DIAGONAL)
+    return sorted(
+        (k for k in ks if turn_gap(angle_deg, k) <= reach_deg + 1e-9), key=lambda k: (turn_gap(angle_deg, k), k)
+    )
+
+
 def extract(
     extractor, image: np.ndarray, side: int | None = None, rot_k: int = 0, mask: np.ndarray | None = None
 ) -> dict:

@@ -157,6 +157,8 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
     assert LocalizeOptions(rotations=4).cascade_overrides() is None
     with pytest.raises(AerolocError, match="north-up queries need no rotation search"):
         LocalizeOptions(north_up=True, rotations=4)
+    with pytest.raises(AerolocError, match=r"unknown re-ranker option\(s\) \['refine_runner_up'\]"):
+        LocalizeOptions(rerank_overrides={"refine_runner_up": 0})  # misspelt: refine_runners_up
     out = tmp_path / "r.csv"
     p = subprocess.run(
         [

@@ -59,6 +59,8 @@ CASCADE_DEFAULTS = {
     # a best candidate with at least this many (but < min_inliers) inliers is re-matched against the map window
     # its hypothesis covers (aeroloc.localization.window); None: off
     "refine_min": None,
+    # when the best's window re-match fails, this many runners-up verified with refine_min inliers are re-matched
+    "refine_runners_up": 2,
     # an accepted match whose query footprint reaches this share of a tile side beyond the tile is re-matched
     # against its map window too, and the window's result kept when it has more inliers; None: off
     "refine_outside": None,
@@ -125,8 +127,9 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     ``cascade`` < ``overrides``); ``features`` names the entry, ``extractor``/``matcher`` hold overrides of its
     extractor and matcher confs (see :func:`reranker_conf`)."""
     _check_name(name)
-    conf = {**CASCADE_DEFAULTS, **RERANKERS[name].get("cascade", {}), "features": name, **(overrides or {})}
-    bad = set(overrides or {}) - set(conf)
+    base = {**CASCADE_DEFAULTS, **RERANKERS[name].get("cascade", {}), "features": name}
+    bad = set(overrides or {}) - set(base)  # checked before merging: a misspelt option must not pass silently
+    conf = {**base, **(overrides or {})}
     if bad:
         raise AerolocError(f"unknown re-ranker option(s) {sorted(bad)}")
     return conf

@@ -172,3 +172,23 @@ def test_queries_are_described_with_the_configuration_the_tiles_were_built_with(
     )
     model, _, _, _ = Database(naip_db).load_method(METHOD)
     assert model.conf["n_clusters"] == built["n_clusters"] and model.conf["power_norm"] == built["power_norm"]
+
+
+def test_the_vocabulary_does_not_depend_on_torch_threads(naip_db, tmp_path):
+    """Fitted in a process at 2 torch threads and at 1: the same model.pt bytes, so the same descriptors (the
+    shards already run at one thread), whatever machine builds the database."""
+    import torch
+
+    states = []
+    for threads in (2, 1):
+        folder = tmp_path / f"db{threads}"
+        shutil.copytree(naip_db, folder, ignore=shutil.ignore_patterns("global", "local", "db.json"))
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            build_global(Database(folder), METHOD, device="cpu", batch_size=8, progress=False)
+        finally:
+            torch.set_num_threads(before)
+        assert torch.get_num_threads() == before
+        states.append((_global_dir(folder) / "model.pt").read_bytes())
+    assert states[0] == states[1]

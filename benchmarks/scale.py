@@ -187,7 +187,16 @@ def recall_factories(n: int, which: str = "all") -> list[tuple[str, dict]]:
     one = [(f"PCA256,IVF{nlist},SQ8", {"nprobe": 32}), (f"PCA1024,IVF{nlist},SQ8", {"nprobe": 32})]
     one += [(f"IVF{nlist},SQ8", {"nprobe": p}) for p in (32, 128)]
     one += [("SQ8", {}), ("HNSW32,SQ8", {"efSearch": 64}), ("HNSW32,SQ8", {"efSearch": 256})]
-    return {"two-stage": two, "auto": two[:3], "one-stage": one, "all": two + one}[which]
+    # auto's index at other search breadths (efSearch) and candidates; ":f32": the query projected by faiss's
+    # float32 transforms instead of the float16 PCA matrix
+    ef = [(f"{COARSE},Rerank400", {"candidates": r, "efSearch": e}) for r, e in _EF_GRID]
+    ef += [(f"{COARSE},Rerank400", {"candidates": 400, "efSearch": 400, "f32": True})]
+    return {"two-stage": two, "auto": two[:3], "ef": ef, "one-stage": one, "all": two + one}[which]
+
+
+# (candidates, efSearch) of the "ef" factories
+_EF_GRID = [(100, 100), (100, 400), (200, 200), (200, 400), (200, 800), (300, 300), (300, 600), (400, 400)]
+_EF_GRID += [(400, 800), (400, 1200), (600, 600), (800, 800)]
 
 
 def _set_params(index, params: dict) -> None:
@@ -196,9 +205,12 @@ def _set_params(index, params: dict) -> None:
 
     if "candidates" in params:
         index.candidates = params["candidates"]
+        index._projection = None if params.get("f32") else index._projection
     if "nprobe" in params:
         faiss.extract_index_ivf(index).nprobe = params["nprobe"]
-    if "efSearch" in params:
+    if "efSearch" in params and hasattr(index, "ef_search"):  # a two-stage index: its coarse graph
+        index.ef_search = params["efSearch"]
+    elif "efSearch" in params:
         faiss.downcast_index(index).hnsw.efSearch = params["efSearch"]
 
 
@@ -298,10 +310,39 @@ def _exact_top10(npy: Path, q: np.ndarray, chunk: int = 50_000) -> np.ndarray:
     return best
 
 
+def _phases(idx, q: np.ndarray, r: int) -> dict:
+    """Median CPU ms per query of each step of a two-stage search (one query at a time, one thread): the
+    query's projection, the coarse graph walk for ``r`` candidates, reading their rows, scoring them."""
+    import faiss
+
+    faiss.omp_set_num_threads(1)
+    proj, inner = idx._projection, idx._projection.inner
+    exact = faiss.IndexScalarQuantizer(idx.d, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_INNER_PRODUCT)
+    t = {"projection": [], "walk": [], "read": [], "score": []}
+    for x in q:
+        c0 = time.thread_time()
+        y = proj(x)
+        c1 = time.thread_time()
+        c = np.unique(inner.search(y, r)[1][0])
+        c2 = time.thread_time()
+        nbytes = len(c) * idx.d * 2
+        exact.codes.resize(nbytes)
+        idx._read_into(c, memoryview(faiss.rev_swig_ptr(exact.codes.data(), nbytes)))
+        exact.ntotal = len(c)
+        c3 = time.thread_time()
+        exact.search(x[None], 10)
+        c4 = time.thread_time()
+        for k, v in zip(t, (c1 - c0, c2 - c1, c3 - c2, c4 - c3)):
+            t[k].append(v * 1000)
+    return {f"{k} cpu ms": round(float(np.median(v)), 2) for k, v in t.items()}
+
+
 def child_million(npy: Path, index: Path, queries: Path, candidates: str) -> None:
     """Search the 1e6 index one query at a time: ms/query with the store in the page cache, and after its pages
-    were dropped from the cache (posix_fadvise DONTNEED on that file only: reads from disk), at each number of
-    candidates; recall@10 vs exact (ids in ``queries`` + ``.exact.npy``); peak and current RSS of this program."""
+    were dropped from the cache (posix_fadvise DONTNEED on that file only: reads from disk), for each entry of
+    ``candidates`` (``R`` or ``R/ef``: R candidates, the graph walked with efSearch ef; by default the built
+    one; a ``:f32`` suffix projects the query with faiss's float32 transforms instead); the CPU of each step (:func:`_phases`); recall@10 vs exact (ids in ``queries`` + ``.exact.npy``);
+    peak and current RSS of this program."""
     from aeroloc.retrieval.index import load_index, search
 
     base = _proc_status_mb("VmRSS")
@@ -310,32 +351,57 @@ def child_million(npy: Path, index: Path, queries: Path, candidates: str) -> Non
     q = np.load(queries).astype(np.float32)
     exact = np.load(str(queries).replace(".npy", ".exact.npy"))
     out = {"rss_start_mb": base, "rss_after_load_mb": loaded, "ntotal": idx.ntotal, "n_queries": len(q)}
-    for r in map(int, candidates.split(",")):
-        idx.candidates = r
+    built_ef = idx.ef_search
+    out["built efSearch"] = built_ef
+    projection = idx._projection
+    for spec in candidates.split(","):
+        spec, f32 = spec.removesuffix(":f32"), spec.endswith(":f32")
+        r, ef = (int(v) for v in spec.split("/")) if "/" in spec else (int(spec), built_ef)
+        idx.candidates, name = r, (f"R{r}" if ef == built_ef else f"R{r}/ef{ef}") + (" f32 PCA" if f32 else "")
+        if ef is not None:
+            idx.ef_search = ef
+        idx._projection = None if f32 else projection  # ":f32": the query through faiss's float32 transforms
         search(idx, q[:5], 10)
         for cache in ("warm", "cold"):
             if cache == "cold":
                 fd = os.open(npy, os.O_RDONLY)
                 os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
                 os.close(fd)
-            t0, c0 = time.perf_counter(), time.process_time()
-            got = np.concatenate([search(idx, q[i : i + 1], 10)[1] for i in range(len(q))])
-            out[f"R{r} {cache} ms/query"] = round((time.perf_counter() - t0) * 1000 / len(q), 2)
-            # CPU time: what a query costs when it has a core (the wall time waits for one on a busy machine)
-            out[f"R{r} {cache} cpu ms/query"] = round((time.process_time() - c0) * 1000 / len(q), 2)
-        out[f"R{r} r@1"], out[f"R{r} r@10"] = _recall(got, exact)
+            got, wall, cpu = [], [], []
+            for i in range(len(q)):
+                t0, c0 = time.perf_counter(), time.process_time()
+                got.append(search(idx, q[i : i + 1], 10)[1])
+                wall.append((time.perf_counter() - t0) * 1000)
+                cpu.append((time.process_time() - c0) * 1000)
+            got = np.concatenate(got)
+            # mean and median per query; CPU time: what a query costs when it has a core (the wall time waits
+            # for one on a busy machine, and for the disk when a row is not in the page cache)
+            out[f"{name} {cache} ms/query"] = round(float(np.mean(wall)), 2)
+            out[f"{name} {cache} cpu ms/query"] = round(float(np.mean(cpu)), 2)
+            out[f"{name} {cache} median ms / cpu ms"] = [round(float(np.median(v)), 2) for v in (wall, cpu)]
+        out[f"{name} r@1"], out[f"{name} r@10"] = _recall(got, exact)
+        if idx._projection is not None:
+            out[f"{name} phases (warm)"] = _phases(idx, q, r)
+        idx._projection = projection
+        out[f"{name} load"] = round(os.getloadavg()[0], 1)
     out["rss_peak_mb"], out["rss_end_mb"] = _proc_status_mb("VmHWM"), _proc_status_mb("VmRSS")
     out["rss_file_end_mb"] = _proc_status_mb("RssFile")
     print(json.dumps(out))
 
 
 def bench_million(
-    work: Path, n: int = 1_000_000, noise: float = 0.3, candidates: str = "200,400,800", factory: str = "auto"
+    work: Path,
+    n: int = 1_000_000,
+    noise: float = 0.3,
+    candidates: str = "200,400,800",
+    factory: str = "auto",
+    reuse: bool = False,
 ) -> dict:
     """10^6 real 8192-d descriptors: the tiles of the three real sets (from ``--only recall``), repeated with
     noise (each copy: a real row + Gaussian noise of norm ``noise``, renormalised) into a float16 store of
     16 GB; ``auto``'s two-stage index built from it; searched in a child process with every set's real photos
-    (their exact top-10 over the 10^6 rows computed first)."""
+    (their exact top-10 over the 10^6 rows computed first). ``reuse``: the exact top-10 and the index of an
+    earlier run are searched again (only the search is measured)."""
     from aeroloc.retrieval.index import build_index_from_store
 
     stores = [next((work / f"recall-{s[0].split()[0]}" / "global").glob("*/descriptors.npy")) for s in RECALL_SETS]
@@ -364,14 +430,22 @@ def bench_million(
     gen_s = time.perf_counter() - t0
     print(f"million: store of {n} x {d} ready in {gen_s:.0f} s", flush=True)
     t0 = time.perf_counter()
-    np.save(qpath, q)
-    np.save(folder / "queries.exact.npy", _exact_top10(npy, q))
+    same_q = reuse and qpath.is_file() and np.array_equal(np.load(qpath), q)
+    if not (same_q and (folder / "queries.exact.npy").is_file()):
+        np.save(qpath, q)
+        np.save(folder / "queries.exact.npy", _exact_top10(npy, q))
     exact_s = time.perf_counter() - t0
     print(f"million: exact top-10 of {len(q)} photos in {exact_s:.0f} s", flush=True)
-    t0 = time.perf_counter()
-    factory = build_index_from_store(npy, folder / "index.faiss", factory)
-    build_s = time.perf_counter() - t0
-    print(f"million: {factory} built in {build_s:.0f} s (load {os.getloadavg()[0]:.1f})", flush=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if reuse and (folder / "index.faiss").is_file():
+        factory = f"{factory} (index of an earlier run)"
+    else:
+        factory = build_index_from_store(npy, folder / "index.faiss", factory)
+    build_s, build_cpu_s = time.perf_counter() - t0, time.process_time() - c0
+    print(
+        f"million: {factory} built in {build_s:.0f} s, {build_cpu_s:.0f} s CPU (load {os.getloadavg()[0]:.1f})",
+        flush=True,
+    )
     out = subprocess.run(
         [sys.executable, __file__, "--child-million", str(npy), str(folder / "index.faiss"), str(qpath), candidates],
         capture_output=True,
@@ -387,6 +461,7 @@ def bench_million(
         "generate_s": round(gen_s, 1),
         "exact_s": round(exact_s, 1),
         "build_s": round(build_s, 1),
+        "build_cpu_s": round(build_cpu_s, 1),
         "coarse index MB": round((folder / "index.faiss").stat().st_size / 2**20, 1),
         "store GB": round(npy.stat().st_size / 2**30, 2),
         "load average": round(os.getloadavg()[0], 1),
@@ -402,11 +477,13 @@ def main() -> None:
     ap.add_argument("--only", choices=["tiling", "build", "recall", "million"])
     ap.add_argument("--no-ray", action="store_true", help="builds: in-process only (the RSS figures)")
     ap.add_argument(
-        "--factories", choices=["all", "auto", "two-stage", "one-stage"], default="all", help="recall: which"
+        "--factories", choices=["all", "auto", "ef", "two-stage", "one-stage"], default="all", help="recall: which"
     )
     ap.add_argument("--sets", default="", help="recall: only these sets (e.g. levir,szada)")
     ap.add_argument("--n", type=int, default=1_000_000, help="million: rows of the synthetic store")
     ap.add_argument("--factory", default="auto", help="million: the index built")
+    ap.add_argument("--candidates", default="200,400,800", help="million: R or R/efSearch, comma-separated")
+    ap.add_argument("--reuse", action="store_true", help="million: search the index and exact top-10 built before")
     a = ap.parse_args()
     if a.child:
         out, zoom, overlap, ray, workers = a.child
@@ -437,7 +514,9 @@ def main() -> None:
     if a.only in (None, "recall"):
         print(json.dumps(bench_recall(work, a.factories, a.sets)), flush=True)
     if a.only in (None, "million"):
-        print(json.dumps(bench_million(work, a.n, factory=a.factory)), flush=True)
+        print(
+            json.dumps(bench_million(work, a.n, candidates=a.candidates, factory=a.factory, reuse=a.reuse)), flush=True
+        )
 
 
 if __name__ == "__main__":

@@ -512,3 +512,44 @@ def test_float16_rows_decoded_by_faiss_are_numpys_values():
     nan = np.isnan(want)
     assert (np.isnan(got) == nan).all()
     assert (got[~nan].view(np.uint32) == want[~nan].view(np.uint32)).all()  # bit for bit, -0.0 included
+
+
+def test_two_stage_single_query_projects_with_the_float16_pca_matrix(tmp_path):
+    """A query searched alone is projected by the PCA matrix in float16 (half the bytes a one-query product
+    reads): its transformed vector is faiss's float32 transform to float16 rounding, it finds the candidates
+    the batch path finds, and its scores stay the exact inner products with the store's rows; the coarse
+    graph's search breadth (twice the candidates, at least EF_SEARCH) can be read and set, and is refused for a
+    coarse index without a graph."""
+    import faiss
+
+    from aeroloc.retrieval.index import _pca_chain_or_none, build_index_from_store
+
+    npy, x16 = _store(tmp_path, clustered_rows(3000, 256, seed=3))
+    q = x16[:30] + 0.05 * unit_rows(30, 256, seed=4)
+    build_index_from_store(npy, tmp_path / "i.faiss", "PCA32,L2norm,HNSW32,SQ8,Rerank60", chunk=700)
+    index = load_index(tmp_path / "i.faiss")
+    proj = index._projection
+    want = q
+    for t in _pca_chain_or_none(index.coarse):
+        want = t.apply(want)
+    got = np.concatenate([proj(x) for x in q])
+    assert got.shape == want.shape == (30, 32)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
+    assert 1e-7 < np.abs(got - want).max() < 2e-3  # float16 rounding of the matrix, not another transform
+    single = [index.search(x[None], 10) for x in q]
+    ids1 = np.concatenate([i for _, i in single])
+    s1 = np.concatenate([s for s, _ in single])
+    np.testing.assert_allclose(s1, np.take_along_axis(q @ x16.T, ids1, 1), rtol=0, atol=1e-5)
+    _, batch = index.search(q, 10)  # 30 queries: faiss's float32 transforms
+    assert np.mean([len(set(a) & set(b)) / 10 for a, b in zip(ids1, batch)]) >= 0.97
+    assert index.ef_search == 256  # EF_SEARCH: more than twice the 60 candidates
+    build_index_from_store(npy, tmp_path / "k.faiss", "PCA32,L2norm,HNSW32,SQ8,Rerank200", chunk=700)
+    assert load_index(tmp_path / "k.faiss").ef_search == 400  # the walk keeps twice the candidates
+    index.ef_search = 90
+    assert faiss.downcast_index(faiss.downcast_index(index.coarse).index).hnsw.efSearch == 90
+    build_index_from_store(npy, tmp_path / "j.faiss", "PCA32,IVF16,SQ8,Rerank60")
+    other = load_index(tmp_path / "j.faiss")
+    assert other.ef_search is None and other._projection is not None
+    with pytest.raises(AerolocError, match="no HNSW graph"):
+        other.ef_search = 90
+    np.testing.assert_allclose(other.search(q[:1], 5)[0], np.sort(q[:1] @ x16.T)[:, ::-1][:, :5], atol=1e-5)

@@ -162,3 +162,23 @@ def test_similarity_finds_the_consensus_of_a_cross_season_pair():
     assert np.allclose(v.H[:2, :2], R, atol=2e-3) and np.allclose(v.H[:2, 2], t, atol=0.5)
     one = verify_similarity(p0[:1], p1[:1])
     assert one.H is None and one.n_inliers == 0
+
+
+def test_the_similarity_refit_recovers_a_nadir_view_from_a_screens_inliers():
+    """Inliers a homography RANSAC kept (here: a 20° turn, scale 0.8 and a shift, 0.5 px noise, plus two pairs
+    10 px off) give back the similarity: the query centre lands within a pixel of where the true transform puts it."""
+    import cv2
+
+    from aeroloc.matching.verify import similarity_on_inliers
+
+    rng = np.random.default_rng(3)
+    p0 = rng.uniform(0, 512, (60, 2))
+    a, s, t = np.radians(20.0), 0.8, np.array([40.0, -25.0])
+    R = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    p1 = p0 @ R.T + t + rng.normal(0, 0.5, p0.shape)
+    p1[:2] += 10.0  # two inliers a 4 px RANSAC threshold would not have kept, but a refit must not follow
+    H = similarity_on_inliers(p0, p1)
+    assert H is not None and np.allclose(H[:2, :2], R, atol=0.01)
+    centre = cv2.perspectiveTransform(np.array([[[256.0, 256.0]]]), H)[0, 0]
+    assert np.linalg.norm(centre - (R @ [256.0, 256.0] + t)) < 1.0
+    assert similarity_on_inliers(p0[:1], p1[:1]) is None  # one pair fixes no rotation and scale

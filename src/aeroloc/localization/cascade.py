@@ -134,7 +134,19 @@ class Reranker:
         return int(inliers.sum()), H, len(matches), vis
 
     def screen_pair(self, qf, tf):
-        return self._verify(qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]))
+        """The screen: mutual nearest neighbours + RANSAC homography (its inliers are what the thresholds count);
+        with ``screen_fit`` "similarity" the transform kept is the similarity refitted on those inliers
+        (aeroloc.matching.verify.similarity_on_inliers), what a screen-only fix is placed with."""
+        from aeroloc.matching.verify import similarity_on_inliers
+
+        n, H, n_matches, vis = self._verify(
+            qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"])
+        )
+        if H is not None and vis is not None and n >= 2 and self.conf["screen_fit"] == "similarity":
+            k0, k1, inliers = vis
+            refit = similarity_on_inliers(k0[inliers], k1[inliers])
+            H = refit if refit is not None else H
+        return n, H, n_matches, vis
 
     def match_pair(self, qf, tf):
         matches, _ = self.matcher.match(qf, tf)

@@ -46,6 +46,9 @@ CASCADE_DEFAULTS = {
     "diagonals": True,
     "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
     "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
+    # the transform a screen keeps: "similarity" refitted on the homography's inliers (places screen-only fixes
+    # better, see aeroloc.matching.verify.similarity_on_inliers) or None (the homography itself)
+    "screen_fit": "similarity",
     "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)
     "accept_screen": 40,  # a screen this strong is accepted without the matcher (None: always verify)
     "max_verify": 3,  # otherwise the matcher re-matches up to this many best-screened candidates, until one passes

@@ -68,6 +68,32 @@ def test_simulated_flight_overlaps_turns_and_loses_frames(flight):
     assert all(m.contains_latlon(float(r["lat"]), float(r["lon"])) for r in truth)
 
 
+def test_a_long_flight_returns_to_the_covered_ground(naip_map, naip_dev):
+    """3,000 frames (25 min) over the dev crops' composite: the default planner, once a turn has carried the
+    aircraft off the covered ground, re-plans at random every frame and stands at the composite's edge (measured:
+    2,796 frames still, 5 % over covered ground); return_to_cover heads for the nearest covered point, and flies
+    the same path as the default until the aircraft first leaves it."""
+    import numpy as np
+
+    from aeroloc.core.queries import load_queries
+    from aeroloc.flight.composite import compose
+    from aeroloc.flight.simulate import FlightPlan, fly
+    from aeroloc.maps.sources import open_map
+
+    comp = compose(open_map(naip_map), load_queries(naip_dev, priors="none"))
+    paths = {
+        rc: np.array([(s.x, s.y, s.yaw) for _, _, s in fly(FlightPlan(frames=3000, seed=3, return_to_cover=rc), comp)])
+        for rc in (False, True)
+    }
+    xy = paths[True][:, :2]
+    assert np.all(np.abs(np.diff(xy, axis=0)).sum(axis=1) > 0)  # it never stands still
+    h, w = comp.coverage.shape
+    covered = comp.coverage[np.clip(xy[:, 1].astype(int), 0, h - 1), np.clip(xy[:, 0].astype(int), 0, w - 1)]
+    assert covered.mean() > 0.98
+    same = np.all(paths[True] == paths[False], axis=1)
+    assert not same.all() and int(np.argmin(same)) >= 50  # the default's path until it leaves (frame 99 here)
+
+
 def test_coasting_follows_the_turn_the_frames_showed(flight):
     """Black frames in a turn: the filter coasts on along the arc the last steps turned on (the frames' rotation),
     not straight on; checked against the simulated flight's true path, which turns at 6°/s throughout."""

@@ -1,17 +1,21 @@
 """Flight mode benchmark (issue #14): every flight of an experiments file tracked and scored, one table row each.
 
-usage: nice python benchmarks/flights.py experiments/flights.yaml [--only NAME-SUBSTRING]
+usage: nice python benchmarks/flights.py experiments/flights.yaml [--only NAME-SUBSTRING] [--every N [--traced]]
 
 Simulated flights are written once into OUT/<name>/ (aeroloc.flight.simulate) and tracked without truth; the
 Toledo photo flights are the shared set's photos of one camera in EXIF time order, scored against their EXIF GPS
 (itself ±2-5 m). RSS is read from /proc at the first frame, a tenth into the flight (every model loaded), half way
-and at the end.
+and at the end; with --every N also every N frames (frame, RSS, wall and CPU seconds, frames/s over the
+last N, load average; --traced adds Python's traced allocations, tracemalloc, which slows the run), printed as it
+goes and written to OUT/<name>/memory.csv. A simulated flight's ``return_to_cover: true`` is the simulator's
+option of that name (long flights: back to the covered ground instead of a random walk at its edge).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import os
 import re
 import sys
 import time
@@ -47,7 +51,7 @@ def simulated(f: dict, folder: Path):
     from aeroloc.maps.sources import open_map
 
     w, h = (int(v) for v in str(f.get("size", "480x360")).split("x"))
-    flying = {k: f[k] for k in ("speed_mps", "leg_s", "turn_rate_dps", "replan_s") if k in f}
+    flying = {k: f[k] for k in ("speed_mps", "leg_s", "turn_rate_dps", "replan_s", "return_to_cover") if k in f}
     if "alt_m" in f:
         flying["alt_m"] = tuple(float(v) for v in f["alt_m"])
     plan = FlightPlan(
@@ -77,7 +81,61 @@ def photos(f: dict, folder: Path):
     return flight, {fr.name: fr.truth for fr in flight.frames if fr.truth}, None
 
 
-def run_one(f: dict, out: Path) -> dict:
+class MemoryLog:
+    """RSS (and optionally Python's traced allocations) every ``every`` frames, streamed to stdout and a CSV."""
+
+    COLUMNS = ["frame", "rss_mb", "traced_mb", "wall_s", "cpu_s", "fps_last", "load1", "load5"]
+
+    def __init__(self, path: Path, every: int, traced: bool):
+        self.every, self.traced = every, traced
+        self.fh = open(path, "w", newline="")  # noqa: SIM115 (closed by close(), after the flight)
+        self.out = csv.writer(self.fh)
+        self.out.writerow(self.COLUMNS)
+        self.t0 = self.last_t = time.perf_counter()
+        self.c0 = time.process_time()
+        self.rows = []
+        if traced:
+            import tracemalloc
+
+            tracemalloc.start()
+        print("| " + " | ".join(self.COLUMNS) + " |", flush=True)
+
+    def __call__(self, n: int) -> None:
+        if n % self.every and n != 1:
+            return
+        now = time.perf_counter()
+        traced = float("nan")
+        if self.traced:
+            import tracemalloc
+
+            traced = tracemalloc.get_traced_memory()[0] / 2**20
+        load = os.getloadavg()
+        fps = (self.every if n > 1 else 1) / max(now - self.last_t, 1e-9)
+        self.last_t = now
+        row = [
+            n,
+            round(rss_mb(), 1),
+            round(traced, 2),
+            round(now - self.t0, 1),
+            round(time.process_time() - self.c0, 1),
+            round(fps, 2),
+            load[0],
+            load[1],
+        ]
+        self.rows.append(row)
+        self.out.writerow(row)
+        self.fh.flush()
+        print("| " + " | ".join(str(v) for v in row) + " |", flush=True)
+
+    def close(self) -> None:
+        self.fh.close()
+        if self.traced:
+            import tracemalloc
+
+            tracemalloc.stop()
+
+
+def run_one(f: dict, out: Path, every: int = 0, traced: bool = False) -> dict:
     folder = out / slug(f["name"])
     folder.mkdir(parents=True, exist_ok=True)
     flight, truth, gap_end = (simulated if f["kind"] == "simulated" else photos)(f, folder)
@@ -88,13 +146,21 @@ def run_one(f: dict, out: Path) -> dict:
 
     marks = (1, max(2, len(flight.frames) // 10), max(3, len(flight.frames) // 2))
 
+    log = MemoryLog(folder / "memory.csv", every, traced) if every else None
+
     def on_point(p, n=[0]):  # noqa: B006 (a counter across calls)
         n[0] += 1
         if n[0] in marks:  # the first frame, a tenth in (every model loaded by then), half way
             rss.append(rss_mb())
+        if log is not None:
+            log(n[0])
 
     t0 = time.perf_counter()
-    points = track_flight(localizer, flight, folder / "track.csv", config, on_point=on_point)
+    try:
+        points = track_flight(localizer, flight, folder / "track.csv", config, on_point=on_point)
+    finally:
+        if log is not None:
+            log.close()
     wall = time.perf_counter() - t0
     rss.append(rss_mb())
     s = score(points, truth, localizer.map.resolution_m, gap_end)
@@ -124,6 +190,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("experiments")
     ap.add_argument("--only", help="run the flights whose name contains this")
+    ap.add_argument("--every", type=int, default=0, help="also log RSS every N frames (OUT/<name>/memory.csv)")
+    ap.add_argument("--traced", action="store_true", help="with --every: Python's traced allocations too (slower)")
     args = ap.parse_args(argv)
     conf = yaml.safe_load(Path(args.experiments).read_text())
     out = Path(conf.get("out", "out/flights"))
@@ -131,7 +199,7 @@ def main(argv=None) -> int:
     for f in conf["flights"]:
         if args.only and args.only not in f["name"]:
             continue
-        rows.append(run_one(f, out))
+        rows.append(run_one(f, out, args.every, args.traced))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
     print(table(rows))
     return 0

@@ -179,3 +179,20 @@ def test_a_runner_up_tile_is_realigned_when_the_best_one_fails(levir_db, data_di
     assert geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0
     assert res.best is not None and res.best.tile_id == "r003c015"
     assert not off.localized, off.status
+
+
+@pytest.mark.slow
+def test_a_turned_photo_missed_by_upright_retrieval_is_found_by_turned_retrieval(levir_db, data_dir):
+    """levir_any_2_04 looks 288°, no prior: its upright descriptor retrieves none of its four true tiles in the
+    top 20 (in this build), the cascade finds nothing there; described at the four quarter turns the true tile
+    comes first, and the cascade places the photo (1.0 m off measured) on a tile the upright retrieval missed."""
+    from aeroloc.localization.localizer import Localizer
+
+    q = next(
+        q
+        for q in load_queries(data_dir / "multi-region/levir-tx/any/queries.csv", priors="none")
+        if q.name == "levir_any_2_04.jpg"
+    )
+    res = Localizer(levir_db)(q.name, read_image(q.path), priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    assert res.best is not None and res.best.tile_id not in res.retrieved

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shutil
 import subprocess
@@ -410,6 +411,10 @@ def bench_million(
     folder = work / "million"
     folder.mkdir(parents=True, exist_ok=True)
     npy, qpath = folder / "descriptors.npy", folder / "queries.npy"
+    # auto's index is index.faiss; another factory's is named after it (both can be searched again, --reuse)
+    index_path = folder / (
+        "index.faiss" if factory == "auto" else f"index-{re.sub(r'[^A-Za-z0-9]+', '-', factory)}.faiss"
+    )
     d = real.shape[1]
     t0 = time.perf_counter()
     if not (npy.is_file() and np.load(npy, mmap_mode="r").shape == (n, d)):
@@ -437,17 +442,17 @@ def bench_million(
     exact_s = time.perf_counter() - t0
     print(f"million: exact top-10 of {len(q)} photos in {exact_s:.0f} s", flush=True)
     t0, c0 = time.perf_counter(), time.process_time()
-    if reuse and (folder / "index.faiss").is_file():
+    if reuse and index_path.is_file():
         factory = f"{factory} (index of an earlier run)"
     else:
-        factory = build_index_from_store(npy, folder / "index.faiss", factory)
+        factory = build_index_from_store(npy, index_path, factory)
     build_s, build_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     print(
         f"million: {factory} built in {build_s:.0f} s, {build_cpu_s:.0f} s CPU (load {os.getloadavg()[0]:.1f})",
         flush=True,
     )
     out = subprocess.run(
-        [sys.executable, __file__, "--child-million", str(npy), str(folder / "index.faiss"), str(qpath), candidates],
+        [sys.executable, __file__, "--child-million", str(npy), str(index_path), str(qpath), candidates],
         capture_output=True,
         text=True,
     )
@@ -462,7 +467,7 @@ def bench_million(
         "exact_s": round(exact_s, 1),
         "build_s": round(build_s, 1),
         "build_cpu_s": round(build_cpu_s, 1),
-        "coarse index MB": round((folder / "index.faiss").stat().st_size / 2**20, 1),
+        "coarse index MB": round(index_path.stat().st_size / 2**20, 1),
         "store GB": round(npy.stat().st_size / 2**30, 2),
         "load average": round(os.getloadavg()[0], 1),
         **res,

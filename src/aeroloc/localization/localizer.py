@@ -84,8 +84,8 @@ class Localizer:
 
     def _dense_confirmed(self, image: np.ndarray, d, out: Localization) -> bool:
         """Whether local features agree with the dense answer ``d``: the query, turned by the turn (quarter or,
-        with the re-ranker's diagonals, eighth) nearest the dense heading, matched against the tiles that contain the dense position, aligns within
-        max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation."""
+        with the re-ranker's diagonals, eighth) nearest the dense heading, matched against the tiles that contain
+        the dense position, aligns within max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation."""
         if self.reranker is None:
             return False
         from aeroloc.core import geo

@@ -110,10 +110,18 @@ def verify_similarity(
         maxIters=int(max_iters),
         confidence=float(confidence),
     )
-    if A is None or mask is None or not np.isfinite(A).all():
+    H = _similarity_3x3(A)
+    if H is None or mask is None:
         return none
     inliers = mask.reshape(-1).astype(bool)
-    return Verification(np.vstack([A, [0.0, 0.0, 1.0]]).astype(np.float64), inliers, int(inliers.sum()))
+    return Verification(H, inliers, int(inliers.sum()))
+
+
+def _similarity_3x3(A: np.ndarray | None) -> np.ndarray | None:
+    """OpenCV's 2x3 partial affine as a 3x3 transform; None when there is no (finite) fit."""
+    if A is None or not np.isfinite(A).all():
+        return None
+    return np.vstack([A, [0.0, 0.0, 1.0]]).astype(np.float64)
 
 
 def similarity_on_inliers(p0: np.ndarray, p1: np.ndarray) -> np.ndarray | None:
@@ -127,9 +135,7 @@ def similarity_on_inliers(p0: np.ndarray, p1: np.ndarray) -> np.ndarray | None:
     if len(p0) < 2:
         return None
     A, _ = cv2.estimateAffinePartial2D(np.asarray(p0, np.float32), np.asarray(p1, np.float32), method=cv2.LMEDS)
-    if A is None or not np.isfinite(A).all():
-        return None
-    return np.vstack([A, [0.0, 0.0, 1.0]]).astype(np.float64)
+    return _similarity_3x3(A)
 
 
 def homography_is_sane(

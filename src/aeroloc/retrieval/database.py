@@ -24,7 +24,7 @@ import numpy as np
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.io import atomic_write_bytes, config_key, file_identity, write_json_atomic
 from aeroloc.maps import tiling
-from aeroloc.retrieval.shards import SHARD_TILES, TORCH_THREADS
+from aeroloc.retrieval.shards import SHARD_TILES, TORCH_THREADS, torch_threads
 from aeroloc.retrieval.store import DescriptorStore
 
 DB_JSON = "db.json"
@@ -291,12 +291,8 @@ def _fit_vocabulary(model, state_path: Path, db: Database, fit_max_tiles: int):
     # at the shard workers' torch threads: the dense descriptors differ in the last bits with the thread count and
     # k-means amplifies that (levir-tx at 2 threads vs 1: centroids 0.02 apart, a query's true tile retrieved at
     # rank 16 in one build and not in the top 20 in the other), so the vocabulary would depend on the machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(TORCH_THREADS)
-    try:
+    with torch_threads(TORCH_THREADS):
         model.fit(db.source.image(int(i)) for i in pick)
-    finally:
-        torch.set_num_threads(threads)
     state_path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()  # torch names the archive after the file: a buffer keeps the bytes the same every build
     torch.save({k: v.cpu() for k, v in model.state_dict().items()}, buf)

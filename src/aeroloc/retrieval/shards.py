@@ -13,6 +13,7 @@ The same :func:`run_shard` runs in-process (:func:`run_in_process`) and on Ray w
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 from collections.abc import Callable, Iterator
@@ -149,19 +150,27 @@ def run_shard(job: ShardJob, source, state, shard: Shard) -> int:
     return len(shard)
 
 
-def run_in_process(job: ShardJob, shards: list[Shard], progress: Callable[[int], None] | None = None) -> None:
-    """The shards one after another in this process (same code as the Ray workers, same torch threads)."""
+@contextlib.contextmanager
+def torch_threads(n: int = TORCH_THREADS):
+    """torch at ``n`` intra-op threads inside the block, the caller's count restored after it."""
     import torch
 
     threads = torch.get_num_threads()
+    torch.set_num_threads(n)
     try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def run_in_process(job: ShardJob, shards: list[Shard], progress: Callable[[int], None] | None = None) -> None:
+    """The shards one after another in this process (same code as the Ray workers, same torch threads)."""
+    with torch_threads():
         runner = ShardRunner(job)
         for shard in shards:
             n = runner(shard)
             if progress:
                 progress(n)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def iter_rows(path: Path, chunk: int = 4096) -> Iterator[np.ndarray]:

@@ -196,3 +196,18 @@ def test_a_turned_photo_missed_by_upright_retrieval_is_found_by_turned_retrieval
     res = Localizer(levir_db)(q.name, read_image(q.path), priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
     assert res.best is not None and res.best.tile_id not in res.retrieved
+
+
+def test_a_camera_prior_given_without_the_image_width_is_read_at_the_image_width(levir_db, data_dir):
+    """Python callers (and frames) pass a height and a lens before the image's width is known: the localizer
+    derives the ground resolution at the image's own width. 1 m above ground with a 1° lens is ~0.03 mm/px on
+    a 1000 px image against levir-tx's 0.5 m/px map: refused by scale. Before, such a prior counted as no prior
+    at all (the sweep searched every heading and the default scale range, ignoring the height)."""
+    from aeroloc.localization.localizer import Localizer
+
+    q = load_queries(data_dir / "multi-region/levir-tx/north/queries.csv", priors="none")[0]
+    camera = Priors(alt_agl_m=1.0, hfov_deg=1.0)
+    assert camera.gsd_m is None and camera.width_px is None
+    res = Localizer(levir_db)(q.name, read_image(q.path), priors=camera)
+    assert not res.localized
+    assert "outside what the 0.5 m/px map" in res.status, res.status

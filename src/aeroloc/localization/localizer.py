@@ -40,6 +40,8 @@ class Localizer:
         from aeroloc.core.device import single_threaded_blas
         from aeroloc.localization.screening import refusal
 
+        if priors is not None:  # a camera's height and lens give a ground resolution only with the image's width
+            priors = priors.with_image_width(image.shape[1], name)
         why = refusal(image, self.map_gsd, priors)
         if why is not None:
             return Localization(name, status=why)

@@ -169,16 +169,16 @@ def run_one(f: dict, out: Path, every: int = 0, traced: bool = False) -> dict:
 
 def table(rows: list[dict]) -> str:
     head = (
-        "| flight | frames | first fix: frame (s) | within t (t) | within 10 m | wrong | coasted (>3σ) | lost "
+        "| flight | frames | first fix: frame (s) | within t (t) | within t, frames showing ground | within 10 m | wrong | coasted (>3σ) | lost "
         "| median err | frames/s tracking (overall) | recovery after gap | RSS MB: 1st frame → 10 % → 50 % → end |"
     )
-    lines = [head, "|" + "---|" * 12]
+    lines = [head, "|" + "---|" * 13]
     for r in rows:
         s = r["score"]
         rss = r["rss"]
         lines.append(
             f"| {r['name']} | {s.frames} | {s.first_fix_frame} ({s.first_fix_s:.1f} s) | {s.within_t:.3f} "
-            f"({s.t_m:.0f} m) | {s.within_10m:.3f} | {s.wrong} | {s.coasted} ({s.coasted_beyond_3sigma}) | "
+            f"({s.t_m:.0f} m) | {s.within_t_seen:.3f} | {s.within_10m:.3f} | {s.wrong} | {s.coasted} ({s.coasted_beyond_3sigma}) | "
             f"{s.lost_after_first} | {s.median_error_m:.1f} m | {s.fps_tracking:.1f} ({s.fps_overall:.1f}) | "
             f"{'-' if s.recovery_frames is None else s.recovery_frames} | "
             f"{' → '.join(f'{v:.0f}' for v in rss)} |"

@@ -2,7 +2,8 @@
 first fix, frames per second while tracking, recovery after a gap.
 
 ``t = max(5 m, 2 map px)``, wrong = farther than ``max(25 m, 10 map px)``. Shares count every frame after the first
-fix (a lost frame is a miss). Wrong fixes count the points an image placed (global fix, tracked); points the motion
+fix (a lost frame is a miss); ``within_t_seen`` only the frames that showed the ground (not blank or undecodable:
+what the camera gave nothing to place, the motion model carries, and that is scored apart). Wrong fixes count the points an image placed (global fix, tracked); points the motion
 model alone placed (coasted, during black frames) are counted apart, with their errors against their sigma.
 """
 
@@ -22,6 +23,7 @@ class FlightScore:
     first_fix_s: float  # wall-clock seconds from the start to the first fix (inclusive)
     within_t: float  # share of the frames after the first fix within t
     within_10m: float
+    within_t_seen: float  # the same share over the frames that showed the ground (blank and undecodable ones left out)
     t_m: float
     wrong: int  # image-placed points farther than the wrong-fix bound
     coasted: int
@@ -44,12 +46,16 @@ def errors_m(points, truth: dict) -> list[float]:
     return out
 
 
+BLIND = ("blank frame", "undecodable frame")  # statuses of frames that show no ground
+
+
 def score(points, truth: dict, map_gsd: float, gap_end_time: float | None = None) -> FlightScore:
     t, wrong_m = max(5.0, 2 * map_gsd), max(25.0, 10 * map_gsd)
     err = errors_m(points, truth)
     first = next((i for i, p in enumerate(points) if p.localized), None)
     after = range(first, len(points)) if first is not None else range(0)
     ok = [err[i] <= t for i in after]
+    seen = [err[i] <= t for i in after if not points[i].status.startswith(BLIND)]
     placed = [i for i in after if points[i].source in ("global fix", "tracked")]
     coasted = [i for i in after if points[i].source == "coasted"]
     tracked_ms = [points[i].ms for i in after if points[i].source == "tracked"]
@@ -65,6 +71,7 @@ def score(points, truth: dict, map_gsd: float, gap_end_time: float | None = None
         first_fix_s=sum(p.ms for p in points[: (first or 0) + 1]) / 1000 if first is not None else math.nan,
         within_t=sum(ok) / len(ok) if ok else 0.0,
         within_10m=sum(err[i] <= 10.0 for i in after) / len(ok) if ok else 0.0,
+        within_t_seen=sum(seen) / len(seen) if seen else 0.0,
         t_m=t,
         wrong=sum(err[i] > wrong_m for i in placed),
         coasted=len(coasted),

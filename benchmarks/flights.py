@@ -51,7 +51,9 @@ def simulated(f: dict, folder: Path):
     from aeroloc.maps.sources import open_map
 
     w, h = (int(v) for v in str(f.get("size", "480x360")).split("x"))
-    flying = {k: f[k] for k in ("speed_mps", "leg_s", "turn_rate_dps", "replan_s", "return_to_cover") if k in f}
+    flying = {
+        k: f[k] for k in ("speed_mps", "leg_s", "turn_rate_dps", "replan_s", "return_to_cover", "compass_deg") if k in f
+    }
     if "alt_m" in f:
         flying["alt_m"] = tuple(float(v) for v in f["alt_m"])
     plan = FlightPlan(

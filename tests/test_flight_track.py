@@ -12,6 +12,7 @@ import math
 import pytest
 
 from aeroloc.core import geo
+from aeroloc.core.errors import AerolocError
 
 
 @pytest.fixture(scope="module")
@@ -338,3 +339,35 @@ def test_html_track_renders_offline_in_chromium(tracked, flight, tmp_path):
     assert 'class="leaflet-image-layer' in dom  # the map imagery under the track
     # SVG paths: track + truth + map outline, and per localized frame one error line and one dot
     assert len(re.findall(r"<path[^>]*leaflet-interactive", dom)) == 3 + 2 * located
+
+
+def test_a_compass_in_the_telemetry_errs_within_its_tolerance_and_leaves_the_flight_as_flown(
+    naip_map, naip_dev, tmp_path
+):
+    """``compass_deg``: telemetry.csv gains heading_deg (the project's convention, as the erring compass reads
+    the yaw) and heading_tol_deg; the error stays within the tolerance but is not zero, and the path, frames and
+    truth are those of the same flight without a compass. The tracker reads it as each frame's heading prior."""
+    from aeroloc.core.queries import load_queries
+    from aeroloc.flight.composite import compose
+    from aeroloc.flight.frames import load_flight
+    from aeroloc.flight.simulate import FlightPlan, write_flight
+    from aeroloc.maps.sources import open_map
+
+    m = open_map(naip_map)
+    comp = compose(m, load_queries(naip_dev, priors="none"))
+    for name, compass in (("plain", None), ("compass", 15.0)):
+        write_flight(tmp_path / name, m, comp, FlightPlan(frames=60, gap_frames=0, seed=3, compass_deg=compass))
+    for f in ("frames.csv", "truth.csv"):
+        assert (tmp_path / "plain" / f).read_text() == (tmp_path / "compass" / f).read_text()
+    truth = _truth(tmp_path / "compass")
+    fl = load_flight(tmp_path / "compass" / "frames.csv", tmp_path / "compass" / "telemetry.csv")
+    errors = []
+    for fr in fl.frames:
+        assert fr.priors.heading_tol_deg == 15.0
+        errors.append((fr.priors.heading_deg - float(truth[fr.name]["heading_deg"]) + 180.0) % 360.0 - 180.0)
+    assert max(abs(e) for e in errors) <= 15.0 + 0.01
+    assert max(abs(e) for e in errors) > 3.0  # an erring compass, not the truth
+    plain = load_flight(tmp_path / "plain" / "frames.csv", tmp_path / "plain" / "telemetry.csv")
+    assert all(fr.priors.heading_deg is None for fr in plain.frames)
+    with pytest.raises(AerolocError, match="compass error"):
+        FlightPlan(compass_deg=200.0).check()

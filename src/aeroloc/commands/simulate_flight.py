@@ -22,6 +22,12 @@ def add_arguments(p):
     p.add_argument("--gap", type=int, default=30, help="frames lost (half black, half missing; default 30)")
     p.add_argument("--factor", type=float, default=2.0, help="composite resolution x the map's (default 2)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--compass",
+        type=float,
+        metavar="DEG",
+        help="also write a compass heading to telemetry.csv, erring slowly within ±DEG (heading_tol_deg = DEG)",
+    )
 
 
 def run(args) -> int:
@@ -49,6 +55,7 @@ def run(args) -> int:
         alt_m=(lo, hi),
         gap_frames=args.gap,
         seed=args.seed,
+        compass_deg=args.compass,
     )
     n = write_flight(args.out, m, comp, plan)
     dates = sorted(set(comp.dates))

@@ -6,7 +6,8 @@ between legs (the ground resolution changes with the height), and loses a stretc
 the gap is recorded black (a camera fault), the second half not at all (the rows are missing, so the times jump).
 
 Written: ``frames/*.jpg``, ``frames.csv`` (``name,time``: what a camera gives, no position, no priors),
-``telemetry.csv`` (``time,alt_agl_m,hfov_deg``: a barometric height and the lens; used only when asked) and
+``telemetry.csv`` (``time,alt_agl_m,hfov_deg``: a barometric height and the lens, with ``compass_deg`` also
+``heading_deg,heading_tol_deg``: a compass that errs within the tolerance; used only when asked) and
 ``truth.csv`` (``name,time,lat,lon,heading_deg,yaw_deg,gsd_m,alt_agl_m``) for scoring. ``heading_deg`` is the
 project's convention (the content's turn from north-up, as the query sets and the dense stage use it);
 ``yaw_deg`` is the compass bearing the top of the frame points to.
@@ -48,6 +49,19 @@ class FlightPlan:
     # random-walks the heading 3° a frame and parks the aircraft at the composite's edge (a 10,000-frame NAIP
     # flight: 86 % of its frames off the covered ground, most of them standing still on the edge). Off by
     # default: the flights measured so far (naip-telemetry leaves the covered ground at frame 266) stay as flown.
+    compass_deg: float | None = None  # a compass in the telemetry (heading_deg, heading_tol_deg = this): its error
+    # wanders slowly within ±this (magnetic interference, calibration), drawn apart from the path (same flight)
+
+    def compass_error(self, t: np.ndarray | float) -> np.ndarray | float:
+        """The compass's error at time ``t`` (degrees, within ±``compass_deg``): two slow sinusoids (periods
+        120 s and 17 s) of seeded phases, 0 without a compass."""
+        if not self.compass_deg:
+            return 0.0 * np.asarray(t)
+        p1, p2 = np.random.default_rng((self.seed, 1)).uniform(0.0, 2.0 * np.pi, 2)
+        w = 0.75 * np.sin(2.0 * np.pi * np.asarray(t) / 120.0 + p1) + 0.25 * np.sin(
+            2.0 * np.pi * np.asarray(t) / 17.0 + p2
+        )
+        return self.compass_deg * w
 
     def gsd(self, alt: float) -> float:
         return 2.0 * alt * math.tan(math.radians(self.hfov_deg) / 2.0) / self.width
@@ -57,6 +71,8 @@ class FlightPlan:
             raise AerolocError("a flight needs >= 2 frames, a positive rate and speed, and frames >= 32 px")
         if not 0 <= self.gap_frames < self.frames:
             raise AerolocError(f"gap of {self.gap_frames} frames does not fit a {self.frames}-frame flight")
+        if self.compass_deg is not None and not 0 <= self.compass_deg <= 180:
+            raise AerolocError(f"a compass error of ±{self.compass_deg}° is outside 0-180°")
 
 
 @dataclass
@@ -161,10 +177,14 @@ def write_flight(out, map_, comp: Composite, plan: FlightPlan, quality: int = 90
     ):
         frames, tele, truth = csv.writer(ff), csv.writer(tf), csv.writer(gf)
         frames.writerow(["name", "time"])
-        tele.writerow(["time", "alt_agl_m", "hfov_deg"])
+        compass = plan.compass_deg is not None
+        tele.writerow(["time", "alt_agl_m", "hfov_deg"] + (["heading_deg", "heading_tol_deg"] if compass else []))
         truth.writerow(TRUTH_COLUMNS)
         for i, t, s in fly(plan, comp):
-            tele.writerow([f"{t:.3f}", f"{s.alt:.1f}", plan.hfov_deg])
+            row = [f"{t:.3f}", f"{s.alt:.1f}", plan.hfov_deg]
+            if compass:  # the content's turn (project convention) as the erring compass reads the yaw
+                row += [f"{(-(s.yaw + plan.compass_error(t))) % 360.0:.2f}", plan.compass_deg]
+            tele.writerow(row)
             if i in missing:
                 continue
             name = f"frame_{i:06d}.jpg"

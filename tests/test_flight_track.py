@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 
+import numpy as np
 import pytest
 
 from aeroloc.core import geo
@@ -371,3 +372,38 @@ def test_a_compass_in_the_telemetry_errs_within_its_tolerance_and_leaves_the_fli
     assert all(fr.priors.heading_deg is None for fr in plain.frames)
     with pytest.raises(AerolocError, match="compass error"):
         FlightPlan(compass_deg=200.0).check()
+
+
+def test_a_sweep_fix_gives_a_pose_from_its_own_placement(flight, tracked):
+    """A global fix by the sweep has a position, a heading and a scale but no tile transform: the tracker takes
+    its pose from a window match around it at the sweep's heading and scale, or from the sweep's placement itself
+    when the window match is not distinct (here: a uniform frame). Before, such fixes were dropped (levir-tx
+    flight without metadata: frame 229 lost although the sweep had placed it 1.6 m off with 57 inliers)."""
+    from aeroloc.core.images import read_image
+    from aeroloc.core.priors import Priors
+    from aeroloc.flight.tracker import Tracker
+    from aeroloc.localization.results import Localization
+    from aeroloc.matching.sweep import Hypothesis
+
+    folder, _, m = flight
+    _, _, localizer, _ = tracked
+    truth = _truth(folder)
+    name = "frame_000005.jpg"
+    t = truth[name]
+    col, row = m.latlon_to_pixel(float(t["lat"]), float(t["lon"]))
+    scale = float(t["gsd_m"]) / m.resolution_m
+    off = 5.0 / m.resolution_m  # the sweep's answer 5 m east, its heading 5° off
+    h = Hypothesis(float(col) + off, float(row), float(t["heading_deg"]) + 5.0, scale, 0.5)
+    loc = Localization(name, *m.pixel_to_latlon(h.col, h.row), status="localized (sweep)")
+    loc.placement = h
+    tracker = Tracker(localizer)
+    image = read_image(folder / "frames" / name)
+    pose = tracker._pose_at(loc, image, Priors())
+    lat, lon = m.pixel_to_latlon(pose.x, pose.y)
+    assert geo.geodesic_distance(lat, lon, float(t["lat"]), float(t["lon"])) < 10.0  # the window match, not h
+    assert abs((pose.turn_deg - float(t["heading_deg"]) + 180) % 360 - 180) < 4.0
+    flat = np.full_like(image, 128)
+    fallback = tracker._pose_at(loc, flat, Priors())
+    assert (fallback.x, fallback.y, fallback.turn_deg, fallback.scale) == pytest.approx((h.col, h.row, h.angle, scale))
+    loc.placement = None  # no placement, no prior, no calibration: no scale, no pose
+    assert tracker._pose_at(loc, image, Priors()) is None

@@ -203,6 +203,7 @@ class Localizer:
             return True
         a, h = fix.alignment, fix.hypothesis
         out.lat, out.lon, out.inliers, out.best, out.dense = a.lat, a.lon, fix.inliers, None, None
+        out.placement = h
         out.status = f"localized (sweep: heading {h.angle:.0f}°, scale {h.scale:.2f}; {why})"
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         out.top_tiles = self._tiles_around(float(col), float(row), retrieved)[: top_k or None]

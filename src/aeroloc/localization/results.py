@@ -50,6 +50,7 @@ class Localization:
     sigma_m: float | None = None  # 1-sigma position uncertainty, metres (None: not localized)
     best = None  # cascade.Candidate, for visualisation (not part of the CSV)
     dense = None  # dense_stage.DenseResult, for visualisation (not part of the CSV)
+    placement = None  # sweep.Hypothesis a sweep fix confirmed: its heading and scale (a flight's pose; not in the CSV)
 
     @property
     def localized(self) -> bool:

@@ -407,3 +407,34 @@ def test_a_sweep_fix_gives_a_pose_from_its_own_placement(flight, tracked):
     assert (fallback.x, fallback.y, fallback.turn_deg, fallback.scale) == pytest.approx((h.col, h.row, h.angle, scale))
     loc.placement = None  # no placement, no prior, no calibration: no scale, no pose
     assert tracker._pose_at(loc, image, Priors()) is None
+
+
+def test_a_heading_carried_through_blind_frames_stays_uncertain_until_a_fix(tracked):
+    """Odometry measures turns relative to the pose, so a turn made while the frames were blind stays in the
+    heading: the heading searched after an outage keeps its widened tolerance through later odometry steps until
+    a fix measures it. Before, each odometry step reset it to ±15° around a heading 22° off (levir-tx flight
+    without metadata: frames after the gap not found for 10 frames, then lost)."""
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import Tracker
+
+    points, _, localizer, fl = tracked
+    first = next(i for i, p in enumerate(points) if p.localized)
+    tracker = Tracker(localizer)
+    tracker.restore(points[: first + 1])  # just after the first fix
+    assert tracker.heading_tolerance(points[first].time) == pytest.approx(15.0)
+    ref = fl.frames[first + 1]
+    image = read_image(ref.path)
+    black = np.zeros_like(image)
+    t = ref.time
+    for k in range(6):  # 3 s of black frames: coasted
+        tracker._track(replace_time(ref, t + 0.5 * k), black, True, None, 0.5)
+    blind = tracker.heading_tolerance(t + 2.5)
+    assert blind == pytest.approx(15.0 + tracker.cfg.relocalize_heading_dps * 3.0)  # 6 coasted steps of 0.5 s
+    tracker.turn_time = t + 3.0  # an odometry step measured the (relative) turn at 3 s
+    assert tracker.heading_tolerance(t + 3.0) >= blind  # still as uncertain: no fix measured the heading yet
+
+
+def replace_time(ref, t):
+    from dataclasses import replace
+
+    return replace(ref, time=t)

@@ -66,12 +66,14 @@ class TrackConfig:
     # window) is searched as widely as a lost track (every heading since the turn was last measured); the tracking
     # window's ±4° and its distinctness rule are for a known heading (NAIP: after a 15 s outage, sigma 470 m, the
     # window clipped by the map's edge still fitted)
+    wide_reach_sigmas: float = 1.0  # the search around the estimate reaches this many sigmas of it
     near_inner: float = 0.5  # a peak not distinct over the whole reach is taken when it is distinct within this
     # share of it and is the whole reach's best too: its rivals are all farther from the prediction (less likely)
     near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
     # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
     vote_frames: int = 4  # ... or the best peak, not distinct, when the best peaks of this many frames in a row
-    # (each scoring >= anchor_score), carried on by the odometry, agree
+    # (each scoring >= vote_score), carried on by the odometry, agree
+    vote_score: float = 0.3  # ... each scoring at least this
     vote_m: float = 15.0  # ... within max(this, 3 map px)
     vote_turn_deg: float = 6.0  # ... and this turn
     trim_native: bool = True  # after a whole-map search, native heap returned to the system (glibc malloc_trim)
@@ -180,7 +182,10 @@ class Tracker:
         self.scale_fixes = 0  # windowed fixes that nudged the scale since the last global fix
         self.lost_frames = 0
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
-        self.turn_time: float | None = None  # when the pose's turn was last measured (an odometry step, a fix)
+        self.turn_time: float | None = None  # the last frame whose step the heading's uncertainty accounts for (an
+        # odometry step, a coasted step, a fix); frames not tracked since (a lost track) add their time too
+        self.unseen_turn_s = 0.0  # seconds coasted (no odometry step) since a fix last measured the heading: the
+        # odometry measures turns relative to the pose, so a turn made while blind stays in the heading until a fix
         self.candidates: list[tuple[Pose, float, int]] = []  # recent searched frames' best peaks (carried on by
         # the odometry), their scores and ages in frames
         self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
@@ -200,6 +205,7 @@ class Tracker:
         col, row = self.map.latlon_to_pixel(fixed.lat, fixed.lon)
         self.calibration = Pose(float(col), float(row), fixed.heading_deg, fixed.gsd_m / self.gsd)
         self.cal_time = self.turn_time = fixed.time
+        self.unseen_turn_s = 0.0
         if fixed is not last:
             self.lost_since = last.time
             return
@@ -251,6 +257,8 @@ class Tracker:
             # point where it flies: Toledo photos turned with the coasted velocity missed the ±4° window)
             self.filter.predict_coast(dt)
             self.baseline.broken()
+            self.unseen_turn_s += max(0.0, dt)
+            self.turn_time = ref.time  # this step's time is in unseen_turn_s now
         e = self.filter.est
         scale = own / self.gsd if own is not None else self.pose.scale
         self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, scale)
@@ -292,7 +300,7 @@ class Tracker:
         e = self.filter.est
         self.frames_since_fix = 0
         priors = self._priors(ref, size[0])
-        reach = max(e.sigma, self.cfg.near_min_m)
+        reach = max(self.cfg.wide_reach_sigmas * e.sigma, self.cfg.near_min_m)
         pose, status = self._near(ref, image, priors, e.x, e.y, reach, self.pose.turn_deg)
         if pose is None:
             self.filter.misses += 1
@@ -302,6 +310,7 @@ class Tracker:
         self.filter.est.vx, self.filter.est.vy = v
         self.pose = self.calibration = pose
         self.cal_time = self.turn_time = ref.time
+        self.unseen_turn_s = 0.0
         self.rejected.clear()
         self.candidates.clear()
         self.baseline.broken()
@@ -358,6 +367,7 @@ class Tracker:
             self.pose = blend(self.pose, self.pose.x, self.pose.y, None, scale, k=k)
             self.scale_fixes += 1
         self.calibration, self.cal_time, self.turn_time = self.pose, self.prev_time, self.prev_time
+        self.unseen_turn_s = 0.0
         return status, True
 
     def _fix_sigma(self, score: float) -> float:
@@ -437,7 +447,7 @@ class Tracker:
             pose = replace(pose, scale=own / self.gsd)
         self.pose = self.calibration = pose
         self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
-        self.turn_time = ref.time
+        self.turn_time, self.unseen_turn_s = ref.time, 0.0
         self.rejected.clear()
         self.candidates.clear()
         self.baseline.broken()
@@ -471,21 +481,27 @@ class Tracker:
             turn = self.calibration.turn_deg
         return self._near(ref, image, priors, x, y, reach_m, turn)
 
+    def heading_tolerance(self, now: float) -> float:
+        """Degrees the carried heading may be off at time ``now``: 15° + ``relocalize_heading_dps`` x (the seconds
+        since the turn was last measured + those coasted since a fix last measured the heading), at most 180°."""
+        since = self.turn_time if self.turn_time is not None else self.cal_time
+        age = self.unseen_turn_s + (0.0 if since is None else max(0.0, now - since))
+        return min(180.0, 15.0 + self.cfg.relocalize_heading_dps * age)
+
     def _near(
         self, ref: FrameRef, image, priors: Priors, x: float, y: float, reach_m: float, turn: float
     ) -> tuple[Pose | None, str]:
         """The frame searched within ``reach_m`` of (``x``, ``y``) metres, at every heading the frame's own prior
         allows, else around ``turn`` within 15° + ``relocalize_heading_dps`` x the seconds since the turn was last
-        measured, the ground resolution the frame's own (or carried); a best peak with a rival elsewhere in the
+        measured (and those coasted since a fix last measured the heading: levir-tx flight without metadata, after a
+        15 s outage in a turn, the heading was 22° off and odometry steps kept resetting the search to ±15° around
+        it), the ground resolution the frame's own (or carried); a best peak with a rival elsewhere in the
         reach is taken when it is also distinct within ``near_inner`` of it."""
         cal, k = self.calibration, self.cfg.window.sigma_k
         scale = priors.gsd_m / self.gsd if priors.gsd_m is not None else cal.scale
         pose = Pose(x / self.gsd, y / self.gsd, turn, scale)
         if ref.priors.heading_deg is None:
-            since = self.turn_time if self.turn_time is not None else self.cal_time
-            age = 0.0 if since is None else max(0.0, ref.time - since)
-            tol = min(180.0, 15.0 + self.cfg.relocalize_heading_dps * age)
-            priors = replace(priors, heading_deg=turn % 360.0, heading_tol_deg=tol)
+            priors = replace(priors, heading_deg=turn % 360.0, heading_tol_deg=self.heading_tolerance(ref.time))
         angles = priors.heading_search() or (turn,)
 
         def search(reach: float, ratio: float):
@@ -515,7 +531,7 @@ class Tracker:
     def _vote(self, pose: Pose, score: float) -> int:
         """Record a searched frame's best but not distinct peak; ``vote_frames`` when the best peaks of that many
         searched frames in a row (this one the last), carried to this frame by the odometry, each scoring at least
-        ``anchor_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
+        ``vote_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
         and it can move with the frames: NAIP, after a 15 s outage in a turn, the best peaks of frames 1, 2 and 4
         after it agreed on a place 590 m off (ratios 1.01-1.05), those of 3, 5, 6, 7 and 8 on the truth (5-11 m
         off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one."""
@@ -523,7 +539,7 @@ class Tracker:
         tol = max(self.cfg.vote_m, 3 * self.gsd) / self.gsd
         recent = self.candidates[-self.cfg.vote_frames :]
         agree = len(recent) == self.cfg.vote_frames and all(
-            sc >= self.cfg.anchor_score
+            sc >= self.cfg.vote_score
             and math.hypot(c.x - pose.x, c.y - pose.y) <= tol
             and abs((c.turn_deg - pose.turn_deg + 180.0) % 360.0 - 180.0) <= self.cfg.vote_turn_deg
             for c, sc, _ in recent

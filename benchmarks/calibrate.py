@@ -3,6 +3,7 @@ the reliability table (confidence bins vs observed share within t), each map's f
 without that map.
 
 usage: python benchmarks/calibrate.py RUNS/results.sqlite [...]   (e.g. the output of experiments/atlas.yaml)
+       python benchmarks/calibrate.py --shipped RUNS/results.sqlite [...]   (the tables of the models aeroloc ships)
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from collections import defaultdict
 import numpy as np
 from scipy.optimize import minimize
 
-from aeroloc.localization.confidence import SOURCES, StageModel, evidence, source_of
+from aeroloc.localization.confidence import MODELS, SOURCES, StageModel, evidence, source_of
 from aeroloc.maps.sources import open_map
 
 BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0001)
@@ -101,6 +102,19 @@ def reliability(rows: list[dict]) -> list[dict]:
     return scored
 
 
+def shipped(rows: list[dict]) -> list[dict]:
+    """Every fix scored by the models aeroloc ships (aeroloc.localization.confidence.MODELS): how calibrated the
+    confidence users get is on these results."""
+    return [
+        {
+            **r,
+            "conf": MODELS[r["source"]].confidence(r["evidence"]),
+            "sigma": MODELS[r["source"]].sigma_m(r["evidence"], r["gsd"]),
+        }
+        for r in rows
+    ]
+
+
 def print_tables(scored: list[dict]) -> None:
     print("| confidence bin | fixes | mean confidence | observed within t |")
     print("|---|---|---|---|")
@@ -123,8 +137,12 @@ def print_tables(scored: list[dict]) -> None:
 
 
 def main(argv: list[str]) -> int:
-    rows = load(argv)
+    ship = "--shipped" in argv
+    rows = load([a for a in argv if a != "--shipped"])
     print(f"{len(rows)} fixes; stages: { {s: sum(r['source'] == s for r in rows) for s in SOURCES} }\n")
+    if ship:
+        print_tables(shipped(rows))
+        return 0
     print_tables(reliability(rows))
     print("\nMODELS fitted on every map (paste into aeroloc/localization/confidence.py):")
     for s, m in fit(rows).items():

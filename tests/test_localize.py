@@ -227,3 +227,26 @@ def test_numpy_blas_runs_single_threaded_while_localizing(localizer, queries, mo
     assert res.status == "localized"
     assert seen == [{1}]
     assert blas_threads() == before
+
+
+def test_a_blas_loaded_after_the_first_localization_is_single_threaded_too():
+    """The BLAS libraries are scanned again when modules were imported since the last scan: scipy's own OpenBLAS,
+    imported after the first localization, kept 2 threads (found when the whole suite ran in one process). In a
+    fresh interpreter, so the import order is the one described."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy\n"
+        "from threadpoolctl import threadpool_info\n"
+        "from aeroloc.core.device import single_threaded_blas\n"
+        "with single_threaded_blas():\n"
+        "    pass\n"
+        "import scipy.linalg\n"
+        "with single_threaded_blas():\n"
+        "    print(sorted({i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'}),"
+        " len([i for i in threadpool_info() if i['user_api'] == 'blas']))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "[1]", out
+    assert int(out[1]) >= 2, out  # numpy's and scipy's OpenBLAS both seen (else the test shows nothing)

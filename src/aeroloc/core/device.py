@@ -36,8 +36,12 @@ def single_threaded_blas():
     whole query 272 against 197 ms. The screen's products lose less than that to a single thread.
     """
     global _CONTROLLER
+    import sys
+
     from threadpoolctl import ThreadpoolController
 
-    if _CONTROLLER is None:
-        _CONTROLLER = ThreadpoolController()  # scans the loaded libraries once (~4 ms)
-    return _CONTROLLER.limit(limits=1, user_api="blas")
+    # the loaded libraries are scanned (~4 ms) again whenever modules were imported since: a BLAS loaded later
+    # (scipy's own OpenBLAS, first imported by a later stage) would otherwise keep its threads
+    if _CONTROLLER is None or _CONTROLLER[0] != len(sys.modules):
+        _CONTROLLER = (len(sys.modules), ThreadpoolController())
+    return _CONTROLLER[1].limit(limits=1, user_api="blas")

@@ -30,7 +30,13 @@ class FilterConfig:
     vo_rel_unchecked: float = 0.04  # ... while the scale is a global fix's or carried over a gap, unchecked by a
     # baseline (NAIP, after an outage in which the aircraft climbed: +4 % and 3° off, the track lagged 10-13 m)
     vo_abs_m: float = 0.5  # odometry: error added per step, metres
-    fix_sigma_m: float = 5.0  # a windowed fix's error, metres (at least one map pixel)
+    fix_sigma_m: float = 5.0  # while the uncertainty is beyond this, a windowed fix is sought on every frame
+    # a windowed fix's error (1 sigma, before its score's weighting): this many map px, at least fix_sigma_min_m.
+    # It was 5 m (NAIP's pixel) on every map: on the szada-hu (1.5 m/px) flight without metadata a fix 21 m from a
+    # track 2.7 m sure passed the gate and moved it 7 m off (frames within t 0.972 -> 1.000 with 1 px); NAIP's
+    # 5 m/px map keeps its 5 m
+    fix_sigma_px: float = 1.0
+    fix_sigma_min_m: float = 1.0
     global_sigma_m: float = 5.0
     gate_sigmas: float = 4.0
     gate_floor_m: float = 10.0

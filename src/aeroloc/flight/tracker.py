@@ -373,7 +373,8 @@ class Tracker:
     def _fix_sigma(self, score: float) -> float:
         """A windowed fix's error (metres, 1 sigma) from its own correlation score: weak peaks are the ones that
         sat on changed ground, so they pull the track less."""
-        base = max(self.cfg.filter.fix_sigma_m, self.gsd)
+        f = self.cfg.filter
+        base = max(f.fix_sigma_min_m, f.fix_sigma_px * self.gsd)
         return base * max(1.0, (self.cfg.fix_score_ref / max(score, 1e-3)) ** self.cfg.fix_score_pow)
 
     def _reanchor(self, offset: tuple[float, float], fix, sigma_fix: float) -> bool:

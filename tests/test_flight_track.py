@@ -441,9 +441,9 @@ def replace_time(ref, t):
 
 
 def test_a_windowed_fix_is_as_sure_as_a_map_pixel(tracked):
-    """A windowed fix's sigma is one map pixel (at least 1 m), weighted by its score: NAIP's 5 m/px map keeps the
-    5 m it always had; a 1.5 m/px map (szada-hu) gets 1.5 m, so a fix 21 m from a track 2.7 m sure no longer
-    passes the gate (it moved the szada-hu flight 7 m off)."""
+    """A windowed fix's sigma is one map pixel (at least 2 m), weighted by its score: NAIP's 5 m/px map keeps the
+    5 m it always had; a 1.5 m/px map (szada-hu) gets the 2 m floor, so a fix 21 m from a track 2.7 m sure no
+    longer passes the gate (it moved the szada-hu flight 7 m off)."""
     from aeroloc.flight.tracker import Tracker
 
     _, _, localizer, _ = tracked
@@ -451,9 +451,10 @@ def test_a_windowed_fix_is_as_sure_as_a_map_pixel(tracked):
     assert tracker.gsd == pytest.approx(5.0, rel=1e-3)
     assert tracker._fix_sigma(0.4) == pytest.approx(tracker.gsd)
     assert tracker._fix_sigma(0.2) == pytest.approx(tracker.gsd * 2**1.5)  # a weak peak pulls the track less
-    tracker.gsd = 1.5  # the same rule on a szada-hu-like map
-    assert tracker._fix_sigma(0.4) == pytest.approx(1.5)
+    tracker.gsd = 3.0  # the same rule on a 3 m/px map
+    assert tracker._fix_sigma(0.4) == pytest.approx(3.0)
+    tracker.gsd = 1.5  # szada-hu: the 2 m floor
     tracker.filter.reset(0.0, 0.0, 2.7)
     assert not tracker.filter.update(21.0, 0.0, tracker._fix_sigma(0.35))[0]
-    tracker.gsd = 0.1  # never below fix_sigma_min_m
-    assert tracker._fix_sigma(0.4) == pytest.approx(1.0)
+    tracker.gsd = 0.5  # never below fix_sigma_min_m (2 m: what two dates of imagery agree to)
+    assert tracker._fix_sigma(0.4) == pytest.approx(2.0)

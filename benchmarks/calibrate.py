@@ -88,31 +88,25 @@ def fit(rows: list[dict]) -> dict[str, StageModel]:
     return models
 
 
+def scored_by(r: dict, models: dict[str, StageModel]) -> dict:
+    """Fix ``r`` with the confidence and sigma its stage's model gives it."""
+    mod = models[r["source"]]
+    return {**r, "conf": mod.confidence(r["evidence"]), "sigma": mod.sigma_m(r["evidence"], r["gsd"])}
+
+
 def reliability(rows: list[dict]) -> list[dict]:
     """Leave-one-map-out: each map's fixes scored by the model fitted on the other maps."""
     scored = []
     for m in sorted({r["map"] for r in rows}):
         models = fit([r for r in rows if r["map"] != m])
-        for r in rows:
-            if r["map"] == m:
-                mod = models[r["source"]]
-                scored.append(
-                    {**r, "conf": mod.confidence(r["evidence"]), "sigma": mod.sigma_m(r["evidence"], r["gsd"])}
-                )
+        scored += [scored_by(r, models) for r in rows if r["map"] == m]
     return scored
 
 
 def shipped(rows: list[dict]) -> list[dict]:
     """Every fix scored by the models aeroloc ships (aeroloc.localization.confidence.MODELS): how calibrated the
     confidence users get is on these results."""
-    return [
-        {
-            **r,
-            "conf": MODELS[r["source"]].confidence(r["evidence"]),
-            "sigma": MODELS[r["source"]].sigma_m(r["evidence"], r["gsd"]),
-        }
-        for r in rows
-    ]
+    return [scored_by(r, MODELS) for r in rows]
 
 
 def print_tables(scored: list[dict]) -> None:

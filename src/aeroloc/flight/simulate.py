@@ -16,6 +16,7 @@ project's convention (the content's turn from north-up, as the query sets and th
 from __future__ import annotations
 
 import csv
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,15 +53,19 @@ class FlightPlan:
     compass_deg: float | None = None  # a compass in the telemetry (heading_deg, heading_tol_deg = this): its error
     # wanders slowly within ±this (magnetic interference, calibration), drawn apart from the path (same flight)
 
-    def compass_error(self, t: np.ndarray | float) -> np.ndarray | float:
+    @functools.cached_property
+    def _compass_phases(self) -> tuple[float, float]:
+        """The compass error's two phases, seeded apart from the path's random draws."""
+        p1, p2 = np.random.default_rng((self.seed, 1)).uniform(0.0, 2.0 * np.pi, 2)
+        return float(p1), float(p2)
+
+    def compass_error(self, t: float) -> float:
         """The compass's error at time ``t`` (degrees, within ±``compass_deg``): two slow sinusoids (periods
         120 s and 17 s) of seeded phases, 0 without a compass."""
         if not self.compass_deg:
-            return 0.0 * np.asarray(t)
-        p1, p2 = np.random.default_rng((self.seed, 1)).uniform(0.0, 2.0 * np.pi, 2)
-        w = 0.75 * np.sin(2.0 * np.pi * np.asarray(t) / 120.0 + p1) + 0.25 * np.sin(
-            2.0 * np.pi * np.asarray(t) / 17.0 + p2
-        )
+            return 0.0
+        p1, p2 = self._compass_phases
+        w = 0.75 * math.sin(2.0 * math.pi * t / 120.0 + p1) + 0.25 * math.sin(2.0 * math.pi * t / 17.0 + p2)
         return self.compass_deg * w
 
     def gsd(self, alt: float) -> float:

@@ -71,7 +71,7 @@ class Localizer:
         ground resolution is unknown."""
         from aeroloc.localization.dense_stage import scale_ladder
 
-        p = priors.with_image_width(image.shape[1]) if priors is not None else None
+        p = priors  # already at the image's width (__call__)
         if p is not None and p.gsd_m is not None:
             gsd, scales = p.gsd_m, scale_ladder(p.gsd_tol)
         elif self.options.query_gsd is not None:

@@ -54,17 +54,23 @@ def project_points(H: np.ndarray, pts) -> tuple[np.ndarray, np.ndarray]:
         return v[:, :2] / v[:, 2:3], v[:, 2]
 
 
-def turned(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def turned(image: np.ndarray, angle: float, fill: str = "mirror") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``image`` turned ``angle`` degrees (OpenCV, counter-clockwise) on a canvas that holds all of it, the mask of
     its own pixels, and the 2x3 affine from image to canvas (pixel-centre coordinates); the canvas centre is the
-    image centre, so the centre's position is unchanged."""
+    image centre, so the centre's position is unchanged.
+
+    The canvas corners outside the image are ``fill``ed: "mirror" (the image reflected across its edges) or
+    "black". Features are extracted with the mask, but the extractor normalises the whole canvas: on low-contrast
+    NAIP 2009 crops black corners took a query turned to its true heading from 95-140 inliers to 3-9
+    (naip_20090818_r_012: 95 unturned at 14° off, 9 turned with black corners, 140 mirrored)."""
     h, w = image.shape[:2]
     a = math.radians(angle)
     c, s = abs(math.cos(a)), abs(math.sin(a))
     W, H = int(math.ceil(w * c + h * s - 1e-6)), int(math.ceil(w * s + h * c - 1e-6))
     R = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), angle, 1.0)
     R[:, 2] += ((W - w) / 2.0, (H - h) / 2.0)
-    out = cv2.warpAffine(image, R, (W, H), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
+    border = {"mirror": cv2.BORDER_REFLECT_101, "black": cv2.BORDER_CONSTANT}[fill]
+    out = cv2.warpAffine(image, R, (W, H), flags=cv2.INTER_LINEAR, borderMode=border, borderValue=(0, 0, 0))
     mask = cv2.warpAffine(np.full((h, w), 255, np.uint8), R, (W, H), flags=cv2.INTER_NEAREST) > 0
     return out, cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0, R
 

@@ -75,7 +75,7 @@ def extract(
     if rot_k % 8 >= DIAGONAL:
         factor = side / max(img.shape[:2]) if side else 1.0
         img, turned_mask, turn = turned(np.ascontiguousarray(img), 45.0)
-        m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, 45.0)[0] > 0)
+        m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, 45.0, "black")[0] > 0)
         side = round(max(img.shape[:2]) * factor)
     small, s = resize_to_side(np.ascontiguousarray(img), side)
     if s != 1.0:

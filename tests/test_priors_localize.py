@@ -10,7 +10,7 @@ from aeroloc.core.images import read_image
 from aeroloc.core.priors import Priors
 from aeroloc.core.queries import load_queries
 from aeroloc.localization.dense_stage import DenseMapLocator, scale_ladder
-from aeroloc.localization.localizer import prior_rotations
+from aeroloc.localization.localizer import prior_rotations, prior_turn
 from aeroloc.localization.options import LocalizeOptions
 from aeroloc.maps.sources import open_map
 from aeroloc.matching.dense import heading_angles
@@ -30,6 +30,11 @@ def test_a_heading_prior_picks_the_turns_within_reach():
     # without the diagonals: the quarter turns within 45° + tolerance, as before
     assert prior_rotations(Priors(heading_deg=246.0, heading_tol_deg=15.0), diagonals=False) == [3]
     assert prior_rotations(Priors(heading_deg=130.0, heading_tol_deg=15.0), diagonals=False) == [1, 2]
+    # a heading known within 30°: its own angle, one view; a looser one: the discrete turns
+    assert prior_turn(Priors(heading_deg=246.0, heading_tol_deg=15.0)) == ([0], 246.0)
+    loose = Priors(heading_deg=130.0, heading_tol_deg=40.0)
+    assert prior_turn(loose) == (prior_rotations(loose), 0.0) and prior_rotations(loose)[0] == 5
+    assert prior_turn(None) == (None, 0.0) and prior_turn(Priors()) == (None, 0.0)
 
 
 def test_the_turns_within_reach_of_a_dense_heading_start_at_the_nearest():
@@ -110,10 +115,10 @@ def test_a_dense_answer_from_a_prior_counts_only_when_local_features_confirm_it(
 
 
 @pytest.mark.slow
-def test_a_rough_heading_near_a_diagonal_is_placed_by_the_cascade_at_the_diagonal(levir_db, data_dir):
+def test_a_rough_heading_near_a_diagonal_is_placed_by_the_cascade_at_its_own_angle(levir_db, data_dir):
     """levir_any_1_02 looks 319° (41° off north): its rough heading (±15°) left the quarter turns 26-56° off,
-    where XFeat found 13 inliers and the query was not localized; the turn at 315° places it with the
-    cascade alone (3.4 m off measured), before any sweep."""
+    where XFeat found 13 inliers and the query was not localized; turned by the prior's own angle (mirrored
+    canvas) it is placed by the cascade alone, before any sweep (1.1 m off measured; at the 315° diagonal 3.4 m)."""
     from aeroloc.localization.localizer import Localizer
 
     q = next(
@@ -124,7 +129,7 @@ def test_a_rough_heading_near_a_diagonal_is_placed_by_the_cascade_at_the_diagona
     assert abs(q.priors.heading_deg - q.truth_heading_deg) <= 15.0 + 1e-9
     res = Localizer(levir_db)(q.name, read_image(q.path), priors=q.priors)
     assert res.status == "localized", res.status
-    assert res.best is not None and res.best.rot_k >= DIAGONAL
+    assert res.best is not None and res.best.rot_k == 0  # the prior's turn alone, no discrete turn
     assert geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0
     assert "sweep" not in res.times_ms
 
@@ -211,3 +216,34 @@ def test_a_camera_prior_given_without_the_image_width_is_read_at_the_image_width
     res = Localizer(levir_db)(q.name, read_image(q.path), priors=camera)
     assert not res.localized
     assert "outside what the 0.5 m/px map" in res.status, res.status
+
+
+@pytest.fixture(scope="module")
+def szada_db(data_dir, tmp_path_factory):
+    from aeroloc.localization.build import build_database
+
+    path = data_dir / "multi-region" / "szada-hu" / "map.tif"
+    return build_database(path, tmp_path_factory.mktemp("szada-db"), tile_m=340, device="cpu")
+
+
+@pytest.mark.slow
+def test_a_repeated_place_is_weighed_like_with_like_and_seen_after_an_early_exit(szada_db, data_dir):
+    """Szada farmland repeats a forest edge 546-548 m from these queries' true places.
+
+    - szada_any_1_03 (no priors): the screen accepted the right tile (80 screen inliers); the repeated edge
+      (46) verified by the matcher got 122, and screen vs matcher called it ambiguous. With the best's own
+      matcher count (256) it is placed.
+    - szada_any_0_05 (rough priors): the repeated edge at retrieval rank 1 screened 45 and ended the screen
+      before the true tile (rank 2, 67) was seen; it was fixed 546.6 m off. The candidates screened after the
+      early exit make it a rival: never a wrong fix."""
+    from aeroloc.localization.localizer import Localizer
+
+    loc = Localizer(szada_db)
+    path = data_dir / "multi-region" / "szada-hu" / "any" / "queries.csv"
+    plain = {q.name: q for q in load_queries(path, priors="none")}["szada_any_1_03.jpg"]
+    res = loc(plain.name, read_image(plain.path), priors=plain.priors)
+    assert res.localized, res.status
+    assert geo.geodesic_distance(plain.lat, plain.lon, res.lat, res.lon) < 5.0, res.status
+    rough = {q.name: q for q in load_queries(path, priors="rough", seed=0)}["szada_any_0_05.jpg"]
+    res = loc(rough.name, read_image(rough.path), priors=rough.priors)
+    assert not res.localized or geo.geodesic_distance(rough.lat, rough.lon, res.lat, res.lon) < 25.0, res.status

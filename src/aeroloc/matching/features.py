@@ -57,25 +57,33 @@ def turns_within(angle_deg: float, reach_deg: float, diagonals: bool = True) -> 
 
 
 def extract(
-    extractor, image: np.ndarray, side: int | None = None, rot_k: int = 0, mask: np.ndarray | None = None
+    extractor,
+    image: np.ndarray,
+    side: int | None = None,
+    rot_k: int = 0,
+    mask: np.ndarray | None = None,
+    turn_deg: float = 0.0,
 ) -> dict:
-    """Features of ``image`` turned by :func:`rotation_angle` (``rot_k``) and resized to ``side``.
+    """Features of ``image`` turned by :func:`rotation_angle` (``rot_k``) and ``turn_deg`` more, resized to ``side``.
 
-    Rotation indices 0-3 are lossless quarter turns. 4-7 add 45° on a canvas that holds the whole image, resized
-    by the factor the quarter turn gets, so the ground keeps the density it has against the tiles (the canvas
-    is up to 1.41x longer; shrinking it to ``side`` too made the query 1.3-1.4x coarser than the tiles).
-    ``keypoints`` stay in the frame the extractor saw (what matchers with positional encodings expect);
-    ``scale``, ``rot_k``, ``orig_size`` (and ``turn_affine``) let :func:`to_original` map them back for geometry.
+    Rotation indices 0-3 are lossless quarter turns. 4-7 add 45°, and ``turn_deg`` (OpenCV degrees,
+    counter-clockwise: a heading prior's own angle) any turn, on a mirrored canvas that holds the whole image
+    (aeroloc.core.frames.turned), resized by the factor the quarter turn gets, so the ground keeps the density it
+    has against the tiles (the canvas is up to 1.41x longer; shrinking it to ``side`` too made the query 1.3-1.4x
+    coarser than the tiles). ``keypoints`` stay in the frame the extractor saw (what matchers with positional
+    encodings expect); ``scale``, ``rot_k``, ``orig_size`` (and ``turn_affine``) let :func:`to_original` map
+    them back for geometry, so every transform relates the original image whatever the turn.
     """
     h, w = image.shape[:2]
     if mask is None:
         mask = valid_mask(image)
     img, m = np.rot90(image, rot_k % 4), np.rot90(mask, rot_k % 4)
     turn = None
-    if rot_k % 8 >= DIAGONAL:
+    extra = (45.0 if rot_k % 8 >= DIAGONAL else 0.0) + float(turn_deg)
+    if extra % 360.0 != 0.0:
         factor = side / max(img.shape[:2]) if side else 1.0
-        img, turned_mask, turn = turned(np.ascontiguousarray(img), 45.0)
-        m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, 45.0, "black")[0] > 0)
+        img, turned_mask, turn = turned(np.ascontiguousarray(img), extra)
+        m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, extra, "black")[0] > 0)
         side = round(max(img.shape[:2]) * factor)
     small, s = resize_to_side(np.ascontiguousarray(img), side)
     if s != 1.0:

@@ -50,6 +50,7 @@ CASCADE_DEFAULTS = {
     # better, see aeroloc.matching.verify.similarity_on_inliers) or None (the homography itself)
     "screen_fit": "similarity",
     "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)
+    "after_exit": 6,  # unvisited candidates still screened after the early exit (a repeated place may rival it)
     "accept_screen": 40,  # a screen this strong is accepted without the matcher (None: always verify)
     "max_verify": 3,  # otherwise the matcher re-matches up to this many best-screened candidates, until one passes
     "min_inliers": 35,  # below this (the matcher's inliers, or the screen's if it ran alone): "not localized"

@@ -59,6 +59,12 @@ def add_arguments(p):
         "re-ranking finds nothing",
     )
     p.add_argument(
+        "--no-structure-refine",
+        action="store_true",
+        help="don't refine local-feature fixes by the dense structure at their own heading and scale "
+        "(aeroloc.localization.structure_refine; it moves a fix by at most max(5 m, 2 map px))",
+    )
+    p.add_argument(
         "--min-confidence",
         type=float,
         default=0.5,
@@ -90,6 +96,7 @@ def options_from_args(args):
         north_up=args.north_up,
         query_gsd=args.query_gsd,
         sweep=not args.no_sweep,
+        structure_refine=not args.no_structure_refine,
         min_confidence=args.min_confidence,
     )
 

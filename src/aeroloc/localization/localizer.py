@@ -47,7 +47,30 @@ class Localizer:
             return Localization(name, status=why)
         with single_threaded_blas():
             out = self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
+            self._refine(image, out)
         return self._assess(out)
+
+    def _refine(self, image: np.ndarray, out: Localization) -> None:
+        """A local-feature fix (the cascade's, or a sweep candidate local features confirmed) moved to the dense
+        structure's peak at its own heading and scale when the two agree (aeroloc.localization.structure_refine);
+        dense and structure-confirmed fixes are structural already. The time counts as alignment."""
+        if not out.localized or not self.options.structure_refine or self.map_gsd is None:
+            return
+        from aeroloc.localization.structure_refine import placement_of, refine_fix
+
+        if out.dense is None and out.placement is None and out.best is not None and out.best.H is not None:
+            angle, scale = placement_of(out.best.H)
+        elif out.placement is not None and "structure confirmed" not in out.status:
+            angle, scale = out.placement.angle, out.placement.scale
+        else:
+            return
+        if self.dense is None:
+            return
+        t0 = time.perf_counter()
+        r = refine_fix(self.dense, image, out.lat, out.lon, angle, scale)
+        out.times_ms["align"] = out.times_ms.get("align", 0.0) + (time.perf_counter() - t0) * 1000
+        if r is not None:
+            out.lat, out.lon, out.refined_m = r.lat, r.lon, r.moved_m
 
     def _assess(self, out: Localization) -> Localization:
         """The fix's calibrated confidence and sigma (aeroloc.localization.confidence); a fix below the options'

@@ -29,7 +29,8 @@ class LocalizeOptions:
     map at every heading and scale the priors allow (aeroloc.localization.sweep_stage) for queries with priors,
     and for those the quarter-turn cascade could not place; ``sweep_overrides`` of its settings
     (aeroloc.matching.sweep.SWEEP_DEFAULTS); ``min_confidence`` the calibrated confidence a fix needs
-    (aeroloc.localization.confidence)."""
+    (aeroloc.localization.confidence); ``structure_refine`` moves local-feature fixes to the dense structure's
+    peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine)."""
 
     top_n: int = 20
     top_k: int = 1
@@ -43,6 +44,7 @@ class LocalizeOptions:
     sweep: bool = True
     min_confidence: float = 0.5
     sweep_overrides: dict[str, Any] | None = field(default=None, hash=False)
+    structure_refine: bool = True
 
     def __post_init__(self):
         if not isinstance(self.top_n, int) or self.top_n < 1:
@@ -117,6 +119,7 @@ class LocalizeOptions:
             **({"priors": priors, "dense": self.dense_conf()} if priors else {}),
             **({"sweep": self.sweep_conf()} if self.sweep and self.rerank else {}),
             **({"min_confidence": self.min_confidence} if self.min_confidence != 0.5 else {}),
+            **({"structure_refine": False} if not self.structure_refine else {}),
             code=code_identity(),
         )
         return json.dumps(kw, sort_keys=True, default=str)

@@ -51,6 +51,7 @@ class Localization:
     best = None  # cascade.Candidate, for visualisation (not part of the CSV)
     dense = None  # dense_stage.DenseResult, for visualisation (not part of the CSV)
     placement = None  # sweep.Hypothesis a sweep fix confirmed: its heading and scale (a flight's pose; not in the CSV)
+    refined_m = None  # metres the structure refinement moved a local-feature fix (None: not refined; not in the CSV)
 
     @property
     def localized(self) -> bool:

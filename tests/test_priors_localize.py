@@ -86,12 +86,17 @@ def test_a_rough_prior_is_placed_right_or_not_at_all(szada, data_dir):
         assert d is None or geo.geodesic_distance(q.lat, q.lon, d.lat, d.lon) < 25.0, (q.name, d.status())
 
 
-@pytest.fixture(scope="module")
-def levir_db(data_dir, tmp_path_factory):
+def _region_db(data_dir, tmp_path_factory, region: str, tile_m: float):
+    """A multi-region map's database at the atlas's tile size (about the queries' footprint)."""
     from aeroloc.localization.build import build_database
 
-    path = data_dir / "multi-region" / "levir-tx" / "map.tif"
-    return build_database(path, tmp_path_factory.mktemp("levir-db"), tile_m=150, device="cpu")
+    path = data_dir / "multi-region" / region / "map.tif"
+    return build_database(path, tmp_path_factory.mktemp(f"{region}-db"), tile_m=tile_m, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def levir_db(data_dir, tmp_path_factory):
+    return _region_db(data_dir, tmp_path_factory, "levir-tx", 150)
 
 
 @pytest.mark.slow
@@ -220,10 +225,7 @@ def test_a_camera_prior_given_without_the_image_width_is_read_at_the_image_width
 
 @pytest.fixture(scope="module")
 def szada_db(data_dir, tmp_path_factory):
-    from aeroloc.localization.build import build_database
-
-    path = data_dir / "multi-region" / "szada-hu" / "map.tif"
-    return build_database(path, tmp_path_factory.mktemp("szada-db"), tile_m=340, device="cpu")
+    return _region_db(data_dir, tmp_path_factory, "szada-hu", 340)
 
 
 @pytest.mark.slow

@@ -62,7 +62,7 @@ def add_arguments(p):
         "--no-structure-refine",
         action="store_true",
         help="don't refine local-feature fixes by the dense structure at their own heading and scale "
-        "(aeroloc.localization.structure_refine; it moves a fix by at most max(5 m, 2 map px))",
+        "(aeroloc.localization.structure_refine; it moves a fix by at most max(25 m, 10 map px))",
     )
     p.add_argument(
         "--min-confidence",

@@ -85,13 +85,13 @@ class DenseMapLocator:
     @property
     def map_factor(self) -> float:
         """Map px -> working px at the default query resolution."""
-        return self._factors(self.query_gsd)[0]
+        return self.factors(self.query_gsd)[0]
 
     @property
     def query_factor(self) -> float:
-        return self._factors(self.query_gsd)[1]
+        return self.factors(self.query_gsd)[1]
 
-    def _factors(self, query_gsd: float) -> tuple[float, float]:
+    def factors(self, query_gsd: float) -> tuple[float, float]:
         """(map px -> working px, query px -> working px): both <= 1."""
         work = max(query_gsd, self.map_gsd)
         return self.map_gsd / work, query_gsd / work
@@ -99,7 +99,8 @@ class DenseMapLocator:
     def _fits(self, w: int, h: int, map_factor: float) -> bool:
         return w * h * map_factor**2 <= self.max_region_px
 
-    def _region(self, col: int, row: int, w: int, h: int, map_factor: float) -> DenseRegion:
+    def read_region(self, col: int, row: int, w: int, h: int, map_factor: float) -> DenseRegion:
+        """The map window (``col``, ``row``, ``w``, ``h`` map px) described at ``map_factor`` working px per map px."""
         rgb, valid = self.map.read(col, row, w, h)
         return DenseRegion(resize(rgb, map_factor), resize(valid.astype(np.uint8), map_factor, True) > 0, self.conf)
 
@@ -114,7 +115,7 @@ class DenseMapLocator:
             if key not in self._whole:
                 if len(self._whole) >= 2:  # bounded: queries coarser than the map each have their own factor
                     self._whole.pop(next(iter(self._whole)))
-                self._whole[key] = self._region(0, 0, m.width, m.height, map_factor)
+                self._whole[key] = self.read_region(0, 0, m.width, m.height, map_factor)
             return self._whole[key], 0, 0
         box = None
         for t in tiles:
@@ -130,7 +131,7 @@ class DenseMapLocator:
             box = nb
         if box is None:
             return None
-        return self._region(box[0], box[1], box[2] - box[0], box[3] - box[1], map_factor), box[0], box[1]
+        return self.read_region(box[0], box[1], box[2] - box[0], box[3] - box[1], map_factor), box[0], box[1]
 
     def locate(
         self,
@@ -146,7 +147,7 @@ class DenseMapLocator:
         query_gsd = self.query_gsd if query_gsd is None else check_query_gsd(query_gsd)
         if query_gsd is None:
             raise AerolocError("the dense stage needs the query's ground resolution")
-        map_factor, query_factor = self._factors(query_gsd)
+        map_factor, query_factor = self.factors(query_gsd)
         found = self.region(tiles, map_factor)
         if found is None:
             return None

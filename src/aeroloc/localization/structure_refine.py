@@ -57,7 +57,7 @@ def refine_fix(dense, image: np.ndarray, lat: float, lon: float, angle: float, s
     if query_gsd <= 1.25 * map_gsd:
         map_factor, query_factor = 1.0, query_gsd / map_gsd
     else:
-        map_factor, query_factor = dense._factors(query_gsd)
+        map_factor, query_factor = dense.factors(query_gsd)
     # a footprint over TEMPLATE_MAX px is searched at a coarser working resolution (a Toledo photo's 400 px
     # footprint cost ~150 ms at the map's 0.5 m/px); the peak is still sub-pixel there
     k = min(1.0, TEMPLATE_MAX / (max(image.shape[:2]) * query_factor))
@@ -69,7 +69,7 @@ def refine_fix(dense, image: np.ndarray, lat: float, lon: float, angle: float, s
     c1, r1 = min(m_.width, int(math.ceil(col + half))), min(m_.height, int(math.ceil(row + half)))
     if c1 - c0 < 16 or r1 - r0 < 16:
         return None
-    region = dense._region(c0, r0, c1 - c0, r1 - r0, map_factor)
+    region = dense.read_region(c0, r0, c1 - c0, r1 - r0, map_factor)
     m = region.locate(resize(image, query_factor), (angle,), SCALES)
     if m is None or m.score < region.conf["min_score"]:
         return None

@@ -434,6 +434,35 @@ def test_a_heading_carried_through_blind_frames_stays_uncertain_until_a_fix(trac
     assert tracker.heading_tolerance(t + 3.0) >= blind  # still as uncertain: no fix measured the heading yet
 
 
+def test_odometry_after_blind_frames_is_coasted_until_a_map_fix(tracked):
+    """Odometry measures relative motion: after black frames it carries on from a coasted position, so its points
+    are "coasted" (with the coasted sigma) until a fix ties the track to the map again; a tracked point is one the
+    map has placed since the break (levir-tx flight without metadata: two such points 160 m off were "tracked")."""
+    from dataclasses import replace
+
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import Tracker
+
+    points, _, localizer, fl = tracked
+    first = next(i for i, p in enumerate(points) if p.localized)
+    tracker = Tracker(localizer)
+    cfg = tracker.cfg  # no fix is due: this is about the odometry and the coasting alone
+    tracker.cfg = replace(cfg, fix_every=10**6, filter=replace(cfg.filter, fix_sigma_m=1e9))
+    tracker.restore(points[: first + 1])
+    assert tracker.anchored
+    refs = fl.frames[first + 1 : first + 4]
+    images = [read_image(r.path) for r in refs]
+    tracker.odo(read_image(fl.frames[first].path))  # the fix's frame: the next one chains to it
+    on = tracker(refs[0], images[0])
+    assert on.source == "tracked"  # odometry from the fix: no break
+    black = np.zeros_like(images[1])
+    assert tracker(replace_time(refs[1], refs[1].time), black).source == "coasted"
+    tracker.odo(images[1])  # the frame before the next, as if seen: the odometry chains again
+    again = tracker(refs[2], images[2])
+    assert "odometry" in again.status and again.source == "coasted"  # moved, but from a coasted position
+    assert again.sigma_m > on.sigma_m
+
+
 def replace_time(ref, t):
     from dataclasses import replace
 

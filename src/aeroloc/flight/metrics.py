@@ -4,8 +4,9 @@ first fix, frames per second while tracking, recovery after a gap.
 ``t = max(5 m, 2 map px)``, wrong = farther than ``max(25 m, 10 map px)``. Shares count every frame after the first
 fix (a lost frame is a miss); ``within_t_seen`` only the frames that showed the ground (not blank or undecodable:
 the camera gave nothing to place there, the motion model carries them, and they are scored apart). Wrong fixes
-count the points an image placed (global fix, tracked); points the motion model alone placed (coasted, during
-black frames) are counted apart, with their errors against their sigma.
+count the points an image placed (global fix, tracked); points the motion model placed (coasted: during
+black frames, and odometry carried on from there until a map fix) are counted apart, with their errors against
+their sigma.
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@ is matched against the map window around the prediction (:mod:`aeroloc.flight.wi
 through the filter's gate (:mod:`aeroloc.flight.filter`). At the start, and whenever the track is lost, the
 single-image pipeline (``Localizer``) searches the whole map, with the self-calibrated ground resolution and
 heading as priors once there was a fix. ``source`` says what placed each point: ``global fix``, ``tracked``
-(odometry and/or a windowed fix), ``coasted`` (the motion model alone) or ``lost`` (no position).
+(a windowed fix, or odometry from a fix without a break), ``coasted`` (the motion model alone, or odometry carried
+on from a coasted position: no map evidence since the break) or ``lost`` (no position).
 """
 
 from __future__ import annotations
@@ -190,6 +191,10 @@ class Tracker:
         # the odometry), their scores and ages in frames
         self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
         # and the pose's turn then
+        self.anchored = False  # whether the position is tied to a map fix by odometry alone since: a coasted step
+        # breaks the chain (odometry measures relative motion), so the odometry after it places nothing on the map
+        # until the next fix and its points are "coasted" (levir-tx flight without metadata: two frames after an
+        # outage carried from an estimate 160 m off, sigma 126 m, were reported as tracked)
 
     # --- resuming ---------------------------------------------------------------------------------------------
     def restore(self, points: list[TrackPoint]) -> None:
@@ -210,6 +215,7 @@ class Tracker:
             self.lost_since = last.time
             return
         self.pose = self.calibration
+        self.anchored = last.source in ("global fix", "tracked")
         self.filter.reset(float(col) * self.gsd, float(row) * self.gsd, last.sigma_m)
         prev = points[-2] if len(points) > 1 else None
         if prev is not None and prev.localized and last.time > prev.time:
@@ -259,11 +265,12 @@ class Tracker:
             self.baseline.broken()
             self.unseen_turn_s += max(0.0, dt)
             self.turn_time = ref.time  # this step's time is in unseen_turn_s now
+            self.anchored = False
         e = self.filter.est
         scale = own / self.gsd if own is not None else self.pose.scale
         self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, scale)
         reason = "undecodable frame" if image is None else "blank frame" if blank else ""
-        source = "tracked" if moved else "coasted"
+        source = "tracked" if moved and self.anchored else "coasted"
         self.frames_since_fix += 1
         due = self.frames_since_fix >= self.cfg.fix_every or e.sigma > self.cfg.filter.fix_sigma_m
         searched = False  # whether this frame was already searched around the estimate as widely as when lost
@@ -273,7 +280,8 @@ class Tracker:
             else:
                 status, fixed = self._wide_fix(ref, image, size)
                 searched = True
-            source = "tracked" if (moved or fixed) else "coasted"
+            self.anchored = self.anchored or fixed
+            source = "tracked" if (moved and self.anchored) or fixed else "coasted"
             reason = status
         if self.filter.lost_now(blind=blank):
             self.dead = (replace(self.filter.est), ref.time, self.pose.turn_deg)
@@ -455,6 +463,7 @@ class Tracker:
         self.baseline.checked = self.scale_settled = False
         self.scale_fixes = 0
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
+        self.anchored = True
         return self._point(ref, "global fix", note + status)
 
     def _near_prediction(self, t: float) -> tuple[float, float, float]:

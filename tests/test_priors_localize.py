@@ -230,7 +230,8 @@ def szada_db(data_dir, tmp_path_factory):
 
 @pytest.mark.slow
 def test_a_repeated_place_is_weighed_like_with_like_and_seen_after_an_early_exit(szada_db, data_dir):
-    """Szada farmland repeats a forest edge 546-548 m from these queries' true places.
+    """szada-hu's map shows a forest strip twice (its scenes 0 and 1 overlap: aeroloc.retrieval.echoes), 546-548 m
+    from these queries' true places.
 
     - szada_any_1_03 (no priors): the screen accepted the right tile (80 screen inliers); the repeated edge
       (46) verified by the matcher got 122, and screen vs matcher called it ambiguous. With the best's own
@@ -249,3 +250,52 @@ def test_a_repeated_place_is_weighed_like_with_like_and_seen_after_an_early_exit
     rough = {q.name: q for q in load_queries(path, priors="rough", seed=0)}["szada_any_0_05.jpg"]
     res = loc(rough.name, read_image(rough.path), priors=rough.priors)
     assert not res.localized or geo.geodesic_distance(rough.lat, rough.lon, res.lat, res.lon) < 25.0, res.status
+
+
+@pytest.mark.slow
+def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szada_db, data_dir):
+    """szada-hu's scenes 0 and 1 overlap: one forest strip is on the map twice, 363 px (547 m) apart. The build finds
+    it (every echo at that offset, nearly the same pixels) and nowhere else; szada_any_0_04 (rough priors) was
+    placed on the other copy, 546.6 m off, with no rival in its candidates: its footprint's two copies are the
+    same pixels, so it is "two places match". A query whose footprint reaches ground shown once keeps its fix."""
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.retrieval.echoes import load_echoes
+
+    echoes = load_echoes(szada_db)
+    assert echoes, "the build found no repeated ground"
+    for e in echoes:
+        assert abs(abs(e.dx) - 364) <= 4 and abs(abs(e.dy) - 33) <= 4 and e.score >= 0.9, e
+    assert {e.tile_id[-4:] for e in echoes} == {"c006", "c009"}  # the strip's two copies, nothing else
+    loc = Localizer(szada_db)
+    path = data_dir / "multi-region" / "szada-hu"
+    rough = {q.name: q for q in load_queries(path / "any" / "queries.csv", priors="rough", seed=0)}
+    q = rough["szada_any_0_04.jpg"]
+    res = loc(q.name, read_image(q.path), priors=q.priors)
+    assert not res.localized and "shows the query's ground twice" in res.status, res.status
+    exact = {q.name: q for q in load_queries(path / "north" / "queries.csv", priors="exact")}
+    q = exact["szada_north_1_00.jpg"]  # on the strip's edge: part of its ground is shown once
+    res = loc(q.name, read_image(q.path), priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+
+
+@pytest.mark.slow
+def test_a_map_of_distinct_scenes_has_no_echoes(levir_db):
+    """levir-tx's five suburban scenes repeat streets and roofs but no ground: no echo, so nothing changes there."""
+    from aeroloc.retrieval.echoes import load_echoes
+
+    assert load_echoes(levir_db) == []
+
+
+def test_an_echo_is_the_same_pixels_and_look_alike_ground_is_not(data_dir):
+    """same_ground on the real szada-hu map: the strip's two copies correlate ~1.0 at the echo's offset, the same
+    footprint at a wrong offset of the same length does not; a copy that leaves the map gives None."""
+    import numpy as np
+
+    from aeroloc.maps.sources import open_map
+    from aeroloc.retrieval.echoes import same_ground
+
+    m = open_map(data_dir / "multi-region" / "szada-hu" / "map.tif")
+    square = np.array([[1100, 250], [1250, 250], [1250, 400], [1100, 400]], float)  # in scene 1's doubled strip
+    assert same_ground(m, square, -363, -33) > 0.95
+    assert same_ground(m, square, 363, 33) < 0.6
+    assert same_ground(m, square, 0, -400) is None  # off the map's top

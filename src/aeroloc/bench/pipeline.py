@@ -108,6 +108,10 @@ def _build(cfg, folder: Path, device, progress: bool):
     t_tiles = time.perf_counter() - t0
     db = Database(folder)
     grep = build_global(db, cfg.method, device=device, progress=progress)
+    if cfg.reranker:  # the cascade checks fixes on repeated ground at both places
+        from aeroloc.retrieval.echoes import build_echoes
+
+        build_echoes(db, cfg.method)
     lrep = build_local(db, cfg.reranker, device, progress=progress) if cfg.reranker else None
     timing = {"tiles_s": t_tiles, "build_descriptors_s": grep.extract_s, "fit_s": grep.fit_s}
     memory = {

@@ -93,6 +93,15 @@ def run(args) -> int:
             f"fit {rep.fit_s:.1f} s, index {rep.index_s * 1000:.0f} ms, "
             f"{rep.bytes_per_tile / 1024:.1f} KB/tile"
         )
+    from aeroloc.retrieval.echoes import build_echoes
+
+    echoes = build_echoes(db, args.method)
+    if echoes:
+        far = max(echoes, key=lambda e: e.score)
+        print(
+            f"repeated ground: {len(echoes)} tiles show ground found again elsewhere on the map (e.g. {far.tile_id} "
+            f"at {far.dx:+d}, {far.dy:+d} px, correlation {far.score:.2f}); fixes there are checked at both places"
+        )
     if args.local:
         from aeroloc.matching.features import build_local
 

@@ -1,5 +1,6 @@
 """Everything a :class:`~aeroloc.localization.localizer.Localizer` needs, built (or found cached) in one call:
-tiles, global descriptors + index, and the re-ranker's tile features."""
+tiles, global descriptors + index, the ground the map shows twice (aeroloc.retrieval.echoes) and the re-ranker's
+tile features."""
 
 from __future__ import annotations
 
@@ -36,5 +37,8 @@ def build_database(
     db = Database(out_dir)
     build_global(db, method, device=device, progress=progress, ray=ray)
     if rerank:
+        from aeroloc.retrieval.echoes import build_echoes
+
+        build_echoes(db, method)  # ground the map shows twice: fixes there are checked at both places
         build_local(db, rerank, device, progress=progress, ray=ray)
     return db

@@ -196,6 +196,7 @@ class Localizer:
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
         doubt = doubt or (self._rival(image, best, rr, a) if a.localized else None)
+        doubt = doubt or (self._echo_rival(image, best, rr, a) if a.localized else None)
         if doubt:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
@@ -255,6 +256,52 @@ class Localizer:
             if strong and self._far(image, c, a, reach):
                 return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
         return None
+
+    def _echo_rival(self, image: np.ndarray, best, rr, a: Alignment) -> str | None:
+        """Why ``a`` is ambiguous because the map shows its ground twice (aeroloc.retrieval.echoes), or None: the
+        map under the query's footprint (its corners through the fix's transform) is compared with the map at
+        each echo offset of the tiles holding the fix (best masked correlation within a few pixels); where the two
+        are the same pixels (``ECHO_SAME``) nothing the query shows can tell the places apart. Where the footprint
+        reaches ground shown once, the copies differ and the fix stands on the query's own evidence. szada-hu/any,
+        rough priors: szada_any_0_04 was placed 546 m off, on the other copy of a forest strip (19 and 12-23
+        inliers on windows at the two copies: a coin flip)."""
+        echoes = self.echoes
+        if not echoes or self.map is None or best.H is None:
+            return None
+        from aeroloc.localization.window import footprint_in_map
+
+        col, row = self.map.latlon_to_pixel(a.lat, a.lon)
+        offsets: list[tuple[int, int]] = []
+        for t in self._tiles_around(float(col), float(row), []):
+            for e in echoes.get(t, []):
+                if all(abs(e.dx - dx) + abs(e.dy - dy) > 16 for dx, dy in offsets):
+                    offsets.append((e.dx, e.dy))
+        if not offsets:
+            return None
+        corners = footprint_in_map(best.H, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id])
+        if corners is None:
+            return None
+        from aeroloc.retrieval.echoes import same_ground
+
+        for dx, dy in offsets:
+            score = same_ground(self.map, corners, dx, dy)
+            if score is not None and score >= ECHO_SAME:
+                apart = float(np.hypot(dx, dy)) * (self.map_gsd or 1.0)
+                return (
+                    f"{AMBIGUOUS} (the map shows the query's ground twice, {apart:.0f} m apart: correlation "
+                    f"{score:.2f} between the two copies)"
+                )
+        return None
+
+    @cached_property
+    def echoes(self) -> dict[str, list]:
+        """The database's echoes by tile id (aeroloc.retrieval.echoes; empty when never found for these tiles)."""
+        from aeroloc.retrieval.echoes import load_echoes
+
+        by: dict[str, list] = {}
+        for e in load_echoes(self.db, self.options.method) or []:
+            by.setdefault(e.tile_id, []).append(e)
+        return by
 
     def _matched_score(self, best, rr) -> int:
         """The matcher's inliers on a best candidate the screen alone accepted (its transform is kept): a rival
@@ -391,6 +438,7 @@ def prior_rotations(priors, diagonals: bool = True) -> list[int] | None:
     return ks if len(ks) < (2 if diagonals else 1) * DIAGONAL else None
 
 
+ECHO_SAME = 0.9  # map correlation of two copies under a footprint that makes them one ground (echoes: 0.98-1.0)
 EXACT_TURN_TOL_DEG = 30.0  # a heading known this well is matched at its own angle (the matchers bridge ~35-45°)
 
 

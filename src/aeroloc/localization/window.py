@@ -49,6 +49,12 @@ def _projected_corners(H: np.ndarray, query_size: tuple[int, int]) -> np.ndarray
     return xy
 
 
+def footprint_in_map(H: np.ndarray, query_size: tuple[int, int], tile: Tile) -> np.ndarray | None:
+    """The query's corners (4 x 2, map px) through ``H`` (query px -> ``tile`` px); None when unusable."""
+    xy = _projected_corners(H, query_size)
+    return None if xy is None else xy + [tile.col, tile.row]
+
+
 def beyond_tile(H: np.ndarray, query_size: tuple[int, int], tile: Tile) -> float:
     """How far the query's projected footprint reaches beyond ``tile``, in tile sides (0 = inside; inf when
     the projection is unusable)."""

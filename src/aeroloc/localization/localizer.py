@@ -196,7 +196,7 @@ class Localizer:
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
         doubt = doubt or (self._rival(image, best, rr, a) if a.localized else None)
-        doubt = doubt or (self._echo_rival(image, best, rr, a) if a.localized else None)
+        doubt = doubt or (self._echo_rival(image, best, a) if a.localized else None)
         if doubt:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
@@ -257,7 +257,7 @@ class Localizer:
                 return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
         return None
 
-    def _echo_rival(self, image: np.ndarray, best, rr, a: Alignment) -> str | None:
+    def _echo_rival(self, image: np.ndarray, best, a: Alignment) -> str | None:
         """Why ``a`` is ambiguous because the map shows its ground twice (aeroloc.retrieval.echoes), or None: the
         map under the query's footprint (its corners through the fix's transform) is compared with the map at
         each echo offset of the tiles holding the fix (best masked correlation within a few pixels); where the two

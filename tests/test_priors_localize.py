@@ -2,6 +2,7 @@
 heading range, the re-ranker at the quarter turns a heading prior points at."""
 
 import itertools
+from pathlib import Path
 
 import pytest
 
@@ -276,6 +277,26 @@ def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szad
     q = exact["szada_north_1_00.jpg"]  # on the strip's edge: part of its ground is shown once
     res = loc(q.name, read_image(q.path), priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+
+
+@pytest.mark.slow
+def test_a_database_built_before_the_echo_check_gets_its_echoes_on_first_use(szada_db, monkeypatch):
+    """A database without echoes.json (built before the check): a small one's localizer finds the same echoes
+    the build does and writes them; a large one's warns in one line that repeated ground is not checked."""
+    import aeroloc.localization.localizer as localizer_mod
+    from aeroloc.retrieval.echoes import ECHOES_JSON
+
+    stored = Path(szada_db.folder) / ECHOES_JSON
+    built = stored.read_text()
+    stored.unlink()
+    monkeypatch.setattr(localizer_mod, "ECHO_LAZY_MAX", 10)
+    with pytest.warns(UserWarning, match="not checked until 'aeroloc build' runs again"):
+        assert localizer_mod.Localizer(szada_db).echoes == {}
+    assert not stored.exists()
+    monkeypatch.setattr(localizer_mod, "ECHO_LAZY_MAX", 5000)
+    echoes = localizer_mod.Localizer(szada_db).echoes
+    assert {t[-4:] for t in echoes} == {"c006", "c009"}
+    assert stored.read_text() == built  # the same echoes, byte for byte, as the build wrote
 
 
 @pytest.mark.slow

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from functools import cached_property
 
 import numpy as np
@@ -295,11 +296,25 @@ class Localizer:
 
     @cached_property
     def echoes(self) -> dict[str, list]:
-        """The database's echoes by tile id (aeroloc.retrieval.echoes; empty when never found for these tiles)."""
-        from aeroloc.retrieval.echoes import load_echoes
+        """The database's echoes by tile id (aeroloc.retrieval.echoes). A database built before the check (or whose
+        tiles changed) has none stored: a small one (<= ``ECHO_LAZY_MAX`` tiles, ~12 ms a tile) gets them found and
+        written now, a larger one a warning that repeated ground goes unchecked until ``aeroloc build`` runs again."""
+        from aeroloc.retrieval.echoes import build_echoes, find_echoes, load_echoes
 
+        found = load_echoes(self.db, self.options.method)
+        if found is None and len(self.db.tiles) <= ECHO_LAZY_MAX:
+            try:
+                found = build_echoes(self.db, self.options.method)
+            except OSError:  # a read-only database: found for this run only
+                found = find_echoes(self.db, self.options.method)
+        elif found is None:
+            warnings.warn(
+                f"{self.db.folder}: built before the repeated-ground check ({len(self.db.tiles)} tiles); ground the "
+                "map shows twice is not checked until 'aeroloc build' runs again",
+                stacklevel=2,
+            )
         by: dict[str, list] = {}
-        for e in load_echoes(self.db, self.options.method) or []:
+        for e in found or []:
             by.setdefault(e.tile_id, []).append(e)
         return by
 
@@ -438,6 +453,7 @@ def prior_rotations(priors, diagonals: bool = True) -> list[int] | None:
     return ks if len(ks) < (2 if diagonals else 1) * DIAGONAL else None
 
 
+ECHO_LAZY_MAX = 5000  # tiles whose echoes a localizer finds itself when the database has none stored (~1 min)
 ECHO_SAME = 0.9  # map correlation of two copies under a footprint that makes them one ground (echoes: 0.98-1.0)
 EXACT_TURN_TOL_DEG = 30.0  # a heading known this well is matched at its own angle (the matchers bridge ~35-45°)
 

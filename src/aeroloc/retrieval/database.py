@@ -89,17 +89,23 @@ class Database:
 
     def load_method(self, method: str | None = None, device="cpu"):
         """(model, store, index, conf) of a built method, ready for queries."""
-        from aeroloc.retrieval.index import load_index
         from aeroloc.retrieval.models import build_method
 
         method, gdir = self.global_dir(method)
         entry = self.meta["global"][method]
-        store = DescriptorStore.open_complete(gdir)
+        store, index = self.load_search(method)
         model = build_method(method, entry.get("conf"), entry.get("weights"), device="cpu")
         if (gdir / "model.pt").is_file():
             model.load_state_dict(_load_fitted(gdir / "model.pt"), strict=True)
         model = model.to(device).eval()
-        return model, store, load_index(gdir / "index.faiss"), entry
+        return model, store, index, entry
+
+    def load_search(self, method: str | None = None):
+        """(store, index) of a built method: what searching the stored descriptors needs, without the model."""
+        from aeroloc.retrieval.index import load_index
+
+        _, gdir = self.global_dir(method)
+        return DescriptorStore.open_complete(gdir), load_index(gdir / "index.faiss")
 
 
 @dataclass(frozen=True)

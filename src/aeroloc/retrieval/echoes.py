@@ -81,7 +81,7 @@ def find_echoes(db, method: str | None = None, min_score: float = MIN_SCORE, k: 
     from aeroloc.retrieval.index import search
 
     m = db.source.map()  # the map the tiles were cut from (checked unchanged)
-    _, store, index, _ = db.load_method(method)
+    store, index = db.load_search(method)  # the stored descriptors and their index: no model is needed
     descs = np.asarray(store.load(), np.float32)
     sims, nn = search(index, descs, min(len(db.tiles), k + 8))
     far = []  # per tile, its neighbours farther than a tile side: (similarity, tile)

@@ -300,6 +300,26 @@ def test_a_database_built_before_the_echo_check_gets_its_echoes_on_first_use(sza
 
 
 @pytest.mark.slow
+def test_a_placement_by_the_dense_stage_or_the_sweep_is_checked_for_doubled_ground_too(szada_db):
+    """The echo check takes a footprint, not the cascade's transform: a placement turned and scaled the way the
+    dense stage and the sweep place a query (window.footprint_at), inside szada-hu's doubled strip, is "two
+    places match"; the same placement on ground the map shows once is left alone."""
+    from aeroloc.localization.alignment import Alignment
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.window import footprint_at
+
+    loc = Localizer(szada_db)
+    for (col, row), doubled in [((1175.0, 325.0), True), ((300.0, 1000.0), False)]:
+        lat, lon = loc.map.pixel_to_latlon(col, row)
+        corners = footprint_at(col, row, 30.0, 0.5, (300, 300))  # a 150 px footprint turned 30°
+        why = loc._echo_rival(corners, Alignment("localized", float(lat), float(lon)))
+        if doubled:
+            assert why is not None and "shows the query's ground twice" in why, why
+        else:
+            assert why is None, why
+
+
+@pytest.mark.slow
 def test_a_map_of_distinct_scenes_has_no_echoes(levir_db):
     """levir-tx's five suburban scenes repeat streets and roofs but no ground: no echo, so nothing changes there."""
     from aeroloc.retrieval.echoes import load_echoes

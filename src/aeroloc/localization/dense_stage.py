@@ -42,14 +42,12 @@ class DenseResult:
 
     def footprint(self, query_size: tuple[int, int], query_gsd: float | None = None, map_gsd: float | None = None):
         """The query's four corners (top-left, top-right, bottom-right, bottom-left) in map pixels."""
-        w, h = query_size
+        from aeroloc.localization.window import footprint_at
+
         query_gsd = self.query_gsd if query_gsd is None else query_gsd
         map_gsd = self.map_gsd if map_gsd is None else map_gsd
         k = query_gsd * self.match.scale / map_gsd  # query px -> map px
-        t = np.radians(self.match.angle)  # query offsets -> map offsets: OpenCV's rotation by the matched angle
-        rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
-        corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]], np.float64) / 2 * k
-        return corners @ rot.T + [self.col, self.row]
+        return footprint_at(self.col, self.row, self.match.angle, k, query_size)
 
     def status(self) -> str:
         return (

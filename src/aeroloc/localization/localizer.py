@@ -125,7 +125,13 @@ class Localizer:
             return False
         out.inliers = best.score
         reach = reach_m(self.dense.map_gsd)
-        return float(geo.geodesic_distance(d.lat, d.lon, a.lat, a.lon)) <= reach
+        if float(geo.geodesic_distance(d.lat, d.lon, a.lat, a.lon)) > reach:
+            return False
+        doubt = self._echo_rival(self._footprint(image, best), a)
+        if doubt:  # the dense answer and the features agree, on ground the map also shows elsewhere
+            out.status = f"not localized: {doubt}"
+            return False
+        return True
 
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
         r = self.retriever(image, top_n)
@@ -155,6 +161,9 @@ class Localizer:
                 out.top_tiles = self._tiles_around(d.col, d.row, r.tile_ids)[: top_k or None]
                 return out
             out.inliers = 0
+            if AMBIGUOUS in out.status:  # two places match: no later stage may pick one of them
+                out.times_ms["align"] = dense_ms
+                return out
         if self.reranker is None:  # retrieval only: best tile centre, no alignment
             out.top_tiles = r.tile_ids[:top_k] if top_k else r.tile_ids
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
@@ -197,7 +206,7 @@ class Localizer:
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
         doubt = doubt or (self._rival(image, best, rr, a) if a.localized else None)
-        doubt = doubt or (self._echo_rival(image, best, a) if a.localized else None)
+        doubt = doubt or (self._echo_rival(self._footprint(image, best), a) if a.localized else None)
         if doubt:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
@@ -225,12 +234,24 @@ class Localizer:
             out.status, out.inliers, out.best, out.dense = f"not localized: {why}", 0, None, None
             return True
         a, h = fix.alignment, fix.hypothesis
+        doubt = self._echo_rival(self._sweep_footprint(image, a, h), a)
+        if doubt:
+            out.lat = out.lon = float("nan")
+            out.status, out.inliers, out.best, out.dense = f"not localized: {doubt}", 0, None, None
+            return True
         out.lat, out.lon, out.inliers, out.best, out.dense = a.lat, a.lon, fix.inliers, None, None
         out.placement = h
         out.status = f"localized (sweep: heading {h.angle:.0f}°, scale {h.scale:.2f}; {why})"
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         out.top_tiles = self._tiles_around(float(col), float(row), retrieved)[: top_k or None]
         return True
+
+    def _sweep_footprint(self, image: np.ndarray, a: Alignment, h) -> np.ndarray:
+        """A sweep fix's footprint: the query at the confirmed centre, turned and scaled as its hypothesis says."""
+        from aeroloc.localization.window import footprint_at
+
+        col, row = self.map.latlon_to_pixel(a.lat, a.lon)
+        return footprint_at(float(col), float(row), h.angle, h.scale, (image.shape[1], image.shape[0]))
 
     def _rival(self, image: np.ndarray, best, rr, a: Alignment) -> str | None:
         """Why ``best`` is ambiguous, or None: another tile aligns the query at a place more than two reaches
@@ -258,7 +279,15 @@ class Localizer:
                 return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
         return None
 
-    def _echo_rival(self, image: np.ndarray, best, a: Alignment) -> str | None:
+    def _footprint(self, image: np.ndarray, best) -> np.ndarray | None:
+        """The query's corners in map px through a candidate's transform (None without a usable one)."""
+        from aeroloc.localization.window import footprint_in_map
+
+        if best.H is None:
+            return None
+        return footprint_in_map(best.H, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id])
+
+    def _echo_rival(self, corners: np.ndarray | None, a: Alignment) -> str | None:
         """Why ``a`` is ambiguous because the map shows its ground twice (aeroloc.retrieval.echoes), or None: the
         map under the query's footprint (its corners through the fix's transform) is compared with the map at
         each echo offset of the tiles holding the fix (best masked correlation within a few pixels); where the two
@@ -267,10 +296,8 @@ class Localizer:
         rough priors: szada_any_0_04 was placed 546 m off, on the other copy of a forest strip (19 and 12-23
         inliers on windows at the two copies: a coin flip)."""
         echoes = self.echoes
-        if not echoes or self.map is None or best.H is None:
+        if not echoes or self.map is None or corners is None:
             return None
-        from aeroloc.localization.window import footprint_in_map
-
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         offsets: list[tuple[int, int]] = []
         for t in self._tiles_around(float(col), float(row), []):
@@ -278,9 +305,6 @@ class Localizer:
                 if all(abs(e.dx - dx) + abs(e.dy - dy) > 16 for dx, dy in offsets):
                     offsets.append((e.dx, e.dy))
         if not offsets:
-            return None
-        corners = footprint_in_map(best.H, (image.shape[1], image.shape[0]), self.db.by_id[best.tile_id])
-        if corners is None:
             return None
         from aeroloc.retrieval.echoes import same_ground
 

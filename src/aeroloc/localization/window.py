@@ -55,6 +55,17 @@ def footprint_in_map(H: np.ndarray, query_size: tuple[int, int], tile: Tile) -> 
     return None if xy is None else xy + [tile.col, tile.row]
 
 
+def footprint_at(col: float, row: float, angle_deg: float, k: float, query_size: tuple[int, int]) -> np.ndarray:
+    """The query's corners (top-left, top-right, bottom-right, bottom-left; map px) placed with its centre at
+    ``col, row``, turned by ``angle_deg`` (the content's clockwise turn from north-up, applied as OpenCV's
+    rotation) and scaled by ``k`` map px per query px: a dense or sweep placement's footprint."""
+    w, h = query_size
+    t = np.radians(angle_deg)
+    rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
+    corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]], np.float64) / 2 * k
+    return corners @ rot.T + [col, row]
+
+
 def beyond_tile(H: np.ndarray, query_size: tuple[int, int], tile: Tile) -> float:
     """How far the query's projected footprint reaches beyond ``tile``, in tile sides (0 = inside; inf when
     the projection is unusable)."""

@@ -192,7 +192,17 @@ def recall_factories(n: int, which: str = "all") -> list[tuple[str, dict]]:
     # float32 transforms instead of the float16 PCA matrix
     ef = [(f"{COARSE},Rerank400", {"candidates": r, "efSearch": e}) for r, e in _EF_GRID]
     ef += [(f"{COARSE},Rerank400", {"candidates": 400, "efSearch": 400, "f32": True})]
-    return {"two-stage": two, "auto": two[:3], "ef": ef, "one-stage": one, "all": two + one}[which]
+    # three stages: the graph walks the first 256 (or 128) of the 1024 components, the full projection's 8-bit
+    # codes re-score its Refine x R best, the store R
+    three = [
+        (f"PCA1024,L2norm,Prefix{p},HNSW32,SQ8,Refine{f},Rerank150", {"candidates": r})
+        for p, f in ((256, 8), (256, 16), (512, 4), (512, 8))
+        for r in (150, 200)
+    ]
+    # the graph over product-quantised codes (table look-ups instead of 1024-d decoding on its walk)
+    pq = [(f"PCA1024,L2norm,HNSW32,PQ{m},Rerank400", {"candidates": r}) for m in (128, 256) for r in (200, 400)]
+    groups = {"two-stage": two, "auto": two[:3], "ef": ef, "one-stage": one, "three-stage": three, "pq": pq}
+    return {**groups, "all": two + three + one}[which]
 
 
 # (candidates, efSearch) of the "ef" factories
@@ -482,7 +492,10 @@ def main() -> None:
     ap.add_argument("--only", choices=["tiling", "build", "recall", "million"])
     ap.add_argument("--no-ray", action="store_true", help="builds: in-process only (the RSS figures)")
     ap.add_argument(
-        "--factories", choices=["all", "auto", "ef", "two-stage", "one-stage"], default="all", help="recall: which"
+        "--factories",
+        choices=["all", "auto", "ef", "two-stage", "three-stage", "pq", "one-stage"],
+        default="all",
+        help="recall: which",
     )
     ap.add_argument("--sets", default="", help="recall: only these sets (e.g. levir,szada)")
     ap.add_argument("--n", type=int, default=1_000_000, help="million: rows of the synthetic store")

@@ -553,3 +553,45 @@ def test_two_stage_single_query_projects_with_the_float16_pca_matrix(tmp_path):
     with pytest.raises(AerolocError, match="no HNSW graph"):
         other.ef_search = 90
     np.testing.assert_allclose(other.search(q[:1], 5)[0], np.sort(q[:1] @ x16.T)[:, ::-1][:, :5], atol=1e-5)
+
+
+def test_prefix_index_walks_the_leading_components_and_refines_with_all_of_them(tmp_path):
+    """``PCA<D>,L2norm,Prefix<P>,<graph>,Refine<F>``: the graph holds only the first P of the D components (its
+    vectors are P-dimensional), the 8-bit codes of all D re-score its F x k best, so the coarse answer is ranked
+    like the D-component projection's (better than the P-component graph alone); behind a ``Rerank`` the
+    scores are the store's exact inner products. The parts, their sizes and the refine factor survive the file;
+    the graph's breadth can be set through the refinement. A prefix as long as the PCA is refused in one line."""
+    import faiss
+
+    from aeroloc.retrieval.index import _hnsw_or_none, build_index_from_store, make_index
+
+    npy, x16 = _store(tmp_path, clustered_rows(3000, 256, seed=5))
+    q = x16[:40] + 0.05 * unit_rows(40, 256, seed=6)
+    _, want = search(build_index(x16, "Flat"), q, 10)
+
+    def recall(ids):
+        return np.mean([len(set(a) & set(b)) / 10 for a, b in zip(ids, want)])
+
+    f = "PCA64,L2norm,Prefix16,HNSW32,SQ8,Refine8,Rerank40"
+    assert build_index_from_store(npy, tmp_path / "i.faiss", f, chunk=700) == f
+    coarse = faiss.read_index(str(tmp_path / "i.faiss"))  # read as its own class (IndexPreTransform)
+    refine = faiss.downcast_index(coarse.index)
+    assert isinstance(refine, faiss.IndexRefine) and refine.k_factor == 8 and refine.ntotal == 3000
+    prefix = faiss.downcast_index(refine.base_index)
+    assert prefix.chain.size() == 2 and faiss.downcast_index(prefix.index).d == 16
+    assert faiss.downcast_index(refine.refine_index).d == 64
+    index = load_index(tmp_path / "i.faiss")
+    scores, ids = search(index, q, 10)
+    np.testing.assert_allclose(scores, np.take_along_axis(q @ x16.T, ids, 1), rtol=0, atol=1e-5)
+    _, refined = coarse.search(q, 10)
+    refine.k_factor = 1.0  # the graph's own order over the 16 leading components
+    _, graph_only = coarse.search(q, 10)
+    assert recall(ids) >= 0.9 and recall(refined) > recall(graph_only), (
+        recall(ids),
+        recall(refined),
+        recall(graph_only),
+    )
+    index.ef_search = 77
+    assert _hnsw_or_none(index.coarse).efSearch == 77
+    with pytest.raises(AerolocError, match="prefix must be shorter"):
+        make_index(256, "PCA64,L2norm,Prefix64,HNSW32,SQ8,Refine8")

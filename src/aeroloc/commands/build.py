@@ -38,7 +38,9 @@ def add_arguments(p):
         "--index",
         default="auto",
         help="faiss factory string, optionally ending in ',Rerank<N>' (the N best candidates re-ranked exactly from "
-        "the store); default auto: Flat under 1e5 tiles, else PCA1024,L2norm,HNSW32,SQ8,Rerank400",
+        "the store), or aeroloc's prefix form PCA<D>,L2norm,Prefix<P>,<graph>,Refine<F>[,Rerank<N>] (a graph over "
+        "the first P components, its F x k best re-scored with all D); default auto: Flat under 1e5 tiles, else "
+        "PCA1024,L2norm,HNSW32,SQ8,Rerank400",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N, mps")
     p.add_argument("--batch-size", type=int, default=16)

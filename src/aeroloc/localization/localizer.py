@@ -229,16 +229,13 @@ class Localizer:
         if found is None:
             return False
         fix, why = found
-        if fix is None:  # a repeated pattern: no other stage may pick one of the places
+        # a repeated pattern (no fix), or a fix on ground the map shows twice: no other stage may pick a place
+        doubt = None if fix is None else self._echo_rival(self._sweep_footprint(image, fix), fix.alignment)
+        if fix is None or doubt:
             out.lat = out.lon = float("nan")
-            out.status, out.inliers, out.best, out.dense = f"not localized: {why}", 0, None, None
+            out.status, out.inliers, out.best, out.dense = f"not localized: {doubt or why}", 0, None, None
             return True
         a, h = fix.alignment, fix.hypothesis
-        doubt = self._echo_rival(self._sweep_footprint(image, a, h), a)
-        if doubt:
-            out.lat = out.lon = float("nan")
-            out.status, out.inliers, out.best, out.dense = f"not localized: {doubt}", 0, None, None
-            return True
         out.lat, out.lon, out.inliers, out.best, out.dense = a.lat, a.lon, fix.inliers, None, None
         out.placement = h
         out.status = f"localized (sweep: heading {h.angle:.0f}°, scale {h.scale:.2f}; {why})"
@@ -246,10 +243,11 @@ class Localizer:
         out.top_tiles = self._tiles_around(float(col), float(row), retrieved)[: top_k or None]
         return True
 
-    def _sweep_footprint(self, image: np.ndarray, a: Alignment, h) -> np.ndarray:
+    def _sweep_footprint(self, image: np.ndarray, fix) -> np.ndarray:
         """A sweep fix's footprint: the query at the confirmed centre, turned and scaled as its hypothesis says."""
         from aeroloc.localization.window import footprint_at
 
+        a, h = fix.alignment, fix.hypothesis
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         return footprint_at(float(col), float(row), h.angle, h.scale, (image.shape[1], image.shape[0]))
 

@@ -111,7 +111,9 @@ class Localizer:
     def _dense_confirmed(self, image: np.ndarray, d, out: Localization) -> bool:
         """Whether local features agree with the dense answer ``d``: the query, turned by the dense heading
         itself (aeroloc.matching.features.extract's exact turn), matched against the tiles that contain
-        the dense position, aligns within max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation."""
+        the dense position, aligns within max(25 m, 10 map px) of it. Times go into ``out``; no re-ranker means no confirmation.
+        Where the two agree on ground the map shows twice, the answer is not confirmed and ``out.status`` says
+        "two places match" (the caller then stops: no later stage may pick one of the copies)."""
         if self.reranker is None:
             return False
         from aeroloc.core import geo

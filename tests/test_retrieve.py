@@ -16,7 +16,7 @@ from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
 from aeroloc.retrieval.database import Database
-from aeroloc.retrieval.retriever import Retriever, rotate_image, rotated_views
+from aeroloc.retrieval.retriever import Retriever, prior_views, rotate_image, rotated_views
 
 METHOD = "xfeat-vlad"
 # dev-rotated queries with a heading within 17 degrees of 90, 180 or 270 (one of the four quarter-turn views is
@@ -139,6 +139,20 @@ def test_rotation_by_an_angle_matches_quarter_turns_and_blanks_the_corners():
     assert (diag[0, 0] == 0).all() and (diag[-1, -1] == 0).all()
     assert np.array_equal(diag[15, 15], image[15, 15])
     assert (diag.max(2) == 0).mean() == pytest.approx(2 * (1 - 1 / np.sqrt(2)) ** 2, abs=0.05)  # 4 corner triangles
+
+
+def test_a_heading_prior_gives_the_quarter_turn_near_it_or_its_own_turn_holding_the_whole_query():
+    rng = np.random.default_rng(1)
+    image = rng.integers(1, 256, (40, 60, 3), dtype=np.uint8)
+    (one,) = prior_views(image, 285.0, 15.0)  # 15° off a quarter turn: that turn, exact
+    assert np.array_equal(one, np.rot90(image, 3))
+    (own,) = prior_views(image, 40.0, 15.0)  # 40° off north: its own turn, on a canvas holding the whole query
+    c, s = np.cos(np.radians(40.0)), np.sin(np.radians(40.0))
+    assert own.shape[:2] == (int(np.ceil(60 * s + 40 * c - 1e-6)), int(np.ceil(60 * c + 40 * s - 1e-6)))
+    assert (own.max(2) > 0).all()  # mirrored corners: no black for the VLAD to mistake for no-data
+    loose = prior_views(image, 40.0, 60.0)  # a loose heading: its own turn, then the quarter turns it reaches
+    assert len(loose) == 3 and np.array_equal(loose[1], image) and np.array_equal(loose[2], np.rot90(image))
+    assert len(prior_views(image, 40.0, 170.0)) == 5  # all four quarter turns besides its own
 
 
 def test_quarter_turned_real_queries_are_found(db, retriever, data_dir):

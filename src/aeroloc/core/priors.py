@@ -211,6 +211,13 @@ class Priors:
             return None
         return self.heading_deg - self.heading_tol_deg, self.heading_deg + self.heading_tol_deg
 
+    @property
+    def heading(self) -> tuple[float, float] | None:
+        """(heading, tolerance) degrees when the heading says something (known, tolerance under 180°), else None."""
+        if self.heading_deg is None or self.heading_tol_deg >= 180.0:
+            return None
+        return float(self.heading_deg), float(self.heading_tol_deg)
+
     def heading_contains(self, angle_deg: float) -> bool:
         """``angle_deg`` (any turn) is within the tolerance of the heading; True when the heading is unknown."""
         if self.heading_deg is None:

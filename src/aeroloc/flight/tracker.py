@@ -581,7 +581,9 @@ class Tracker:
         f = self.gsd / work
         tiles = []
         if self.map.width * self.map.height * f * f > dense.max_region_px:
-            tiles = [self.localizer.db.by_id[t] for t in self.localizer.retriever(image, 20).tile_ids]
+            tiles = [
+                self.localizer.db.by_id[t] for t in self.localizer.retriever(image, 20, heading=priors.heading).tile_ids
+            ]
         d = dense.locate(image, tiles, priors.gsd_m, priors.heading_search(), scale_ladder(0.15))
         if d is None:
             return None, "not localized: no distinct dense match over the map"

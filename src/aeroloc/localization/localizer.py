@@ -136,7 +136,7 @@ class Localizer:
         return True
 
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
-        r = self.retriever(image, top_n)
+        r = self.retriever(image, top_n, heading=prior_heading(priors))
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
         known = priors is not None and priors.known
         if known and self.sweep is not None and self.reranker is not None:
@@ -185,9 +185,10 @@ class Localizer:
         the four quarter turns (tiles are upright, so a turned photo's own descriptor can miss its place) and run
         the cascade on the tiles not tried yet. On levir-tx/any (12 queries) the true tile moved from outside the
         top 20 to rank 0 for two photos, and from 13-14 to 3-6 for two more; 3 more descriptors (~0.1-0.2 s) on
-        queries that would otherwise go on to the sweep. Off for north-up queries and when retrieval already
-        turns the query (``rotations`` > 1)."""
-        if self.options.north_up or self.options.rotations > 1:
+        queries that would otherwise go on to the sweep. Off for north-up queries, when retrieval already
+        turns the query (``rotations`` > 1) and when a heading prior turned it upright already
+        (aeroloc.retrieval.retriever.prior_views)."""
+        if self.options.north_up or self.options.rotations > 1 or prior_heading(priors) is not None:
             return
         r4 = self.retriever(image, top_n, rotations=4)
         _add_times(out, r4.times_ms)
@@ -480,6 +481,12 @@ def prior_rotations(priors, diagonals: bool = True) -> list[int] | None:
 ECHO_LAZY_MAX = 5000  # tiles whose echoes a localizer finds itself when the database has none stored (~1 min)
 ECHO_SAME = 0.9  # map correlation of two copies under a footprint that makes them one ground (echoes: 0.98-1.0)
 EXACT_TURN_TOL_DEG = 30.0  # a heading known this well is matched at its own angle (the matchers bridge ~35-45°)
+
+
+def prior_heading(priors) -> tuple[float, float] | None:
+    """(heading, tolerance) of a heading prior for retrieval's upright views (aeroloc.retrieval.retriever.prior_views),
+    None when the heading is unknown or its tolerance spans the circle."""
+    return None if priors is None else priors.heading
 
 
 def prior_turn(priors, diagonals: bool = True) -> tuple[list[int] | None, float]:

@@ -13,6 +13,7 @@ from aeroloc.core.queries import load_queries
 from aeroloc.localization.dense_stage import DenseMapLocator, scale_ladder
 from aeroloc.localization.localizer import prior_rotations, prior_turn
 from aeroloc.localization.options import LocalizeOptions
+from aeroloc.localization.results import AMBIGUOUS
 from aeroloc.maps.sources import open_map
 from aeroloc.matching.dense import heading_angles
 from aeroloc.matching.features import DIAGONAL, turns_within
@@ -183,7 +184,9 @@ def test_a_runner_up_tile_is_realigned_when_the_best_one_fails(levir_db, data_di
     results = []
     for runners_up in (2, 0):
         loc = Localizer(levir_db, LocalizeOptions(rerank_overrides={"refine_runners_up": runners_up}))
-        loc.retriever = lambda image, top_n, rotations=None: Retrieval(list(RETRIEVED_2_04), [0.0] * 20, {})
+        loc.retriever = lambda image, top_n, rotations=None, heading=None: Retrieval(
+            list(RETRIEVED_2_04), [0.0] * 20, {}
+        )
         results.append(loc(q.name, image, priors=q.priors))
     res, off = results
     assert res.status == "localized", res.status
@@ -256,9 +259,11 @@ def test_a_repeated_place_is_weighed_like_with_like_and_seen_after_an_early_exit
 @pytest.mark.slow
 def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szada_db, data_dir):
     """szada-hu's scenes 0 and 1 overlap: one forest strip is on the map twice, 363 px (547 m) apart. The build finds
-    it (every echo at that offset, nearly the same pixels) and nowhere else; szada_any_0_04 (rough priors) was
-    placed on the other copy, 546.6 m off, with no rival in its candidates: its footprint's two copies are the
-    same pixels, so it is "two places match". A query whose footprint reaches ground shown once keeps its fix."""
+    it (every echo at that offset, nearly the same pixels) and nowhere else. szada_any_0_04 (rough priors) was
+    placed on the other copy, 546.6 m off, with no rival in its candidates; since retrieval turns it upright by
+    its heading prior both copies are among them (a rival: "two places match" either way). szada_any_0_02 (exact
+    priors) is placed on one copy with no rival: its footprint's two copies are the same pixels, so it is "two
+    places match" by the map's echo. A query whose footprint reaches ground shown once keeps its fix."""
     from aeroloc.localization.localizer import Localizer
     from aeroloc.retrieval.echoes import load_echoes
 
@@ -271,6 +276,9 @@ def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szad
     path = data_dir / "multi-region" / "szada-hu"
     rough = {q.name: q for q in load_queries(path / "any" / "queries.csv", priors="rough", seed=0)}
     q = rough["szada_any_0_04.jpg"]
+    res = loc(q.name, read_image(q.path), priors=q.priors)
+    assert not res.localized and AMBIGUOUS in res.status, res.status
+    q = {q.name: q for q in load_queries(path / "any" / "queries.csv", priors="exact")}["szada_any_0_02.jpg"]
     res = loc(q.name, read_image(q.path), priors=q.priors)
     assert not res.localized and "shows the query's ground twice" in res.status, res.status
     exact = {q.name: q for q in load_queries(path / "north" / "queries.csv", priors="exact")}

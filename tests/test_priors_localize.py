@@ -196,20 +196,26 @@ def test_a_runner_up_tile_is_realigned_when_the_best_one_fails(levir_db, data_di
 
 
 @pytest.mark.slow
-def test_a_turned_photo_missed_by_upright_retrieval_is_found_by_turned_retrieval(levir_db, data_dir):
-    """levir_any_2_04 looks 288°, no prior: its upright descriptor retrieves none of its four true tiles in the
-    top 20 (in this build), the cascade finds nothing there; described at the four quarter turns the true tile
-    comes first, and the cascade places the photo (1.0 m off measured) on a tile the upright retrieval missed."""
+@pytest.mark.parametrize("name, diagonal", [("levir_any_2_04.jpg", False), ("levir_any_4_05.jpg", True)])
+def test_a_turned_photo_missed_by_upright_retrieval_is_found_by_turned_retrieval(levir_db, data_dir, name, diagonal):
+    """No prior. levir_any_2_04 looks 288°: its upright descriptor retrieves none of its four true tiles in the
+    top 20 (in this build), the cascade finds nothing there; described at the quarter turns the true tile comes
+    first, and the cascade places the photo (1.0 m off measured) on a tile the upright retrieval missed.
+    levir_any_4_05 looks 135°, halfway between two quarter turns: no quarter-turn view retrieves the tile it is
+    placed on, the 135° view (mirrored canvas) does (rank 3 measured), so the turned retrieval describes the
+    diagonals too (aeroloc.localization.localizer.TURNED_RETRIEVAL_VIEWS)."""
     from aeroloc.localization.localizer import Localizer
 
     q = next(
-        q
-        for q in load_queries(data_dir / "multi-region/levir-tx/any/queries.csv", priors="none")
-        if q.name == "levir_any_2_04.jpg"
+        q for q in load_queries(data_dir / "multi-region/levir-tx/any/queries.csv", priors="none") if q.name == name
     )
-    res = Localizer(levir_db)(q.name, read_image(q.path), priors=q.priors)
+    loc = Localizer(levir_db)
+    image = read_image(q.path)
+    res = loc(q.name, image, priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
     assert res.best is not None and res.best.tile_id not in res.retrieved
+    quarter_turns = loc.retriever(image, 20, rotations=4).tile_ids
+    assert (res.best.tile_id not in quarter_turns) == diagonal
 
 
 def test_a_camera_prior_given_without_the_image_width_is_read_at_the_image_width(levir_db, data_dir):

@@ -233,3 +233,18 @@ def test_cli_rejects_rotations_below_one_before_any_work(command, naip_dev, tmp_
     lines = [line for line in p.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"aeroloc {command}: error: --rotations must be >= 1"), lines
     assert not out.exists()
+
+
+def test_turned_retrieval_views_are_the_quarter_turns_and_the_mirrored_diagonals(retriever, dev_query):
+    """``mirror=True``: each quarter-turn row is the descriptor of the query turned by np.rot90 (exact), each
+    diagonal row the descriptor of a heading prior's own view at that angle (the whole query, corners
+    mirrored), not the same-canvas turn with black corners that ``mirror=False`` gives."""
+    _, image = dev_query
+    descs, _ = retriever.describe(image, rotations=8, mirror=True)
+    black, _ = retriever.describe(image, rotations=8)
+    assert descs.shape[0] == 8
+    for i in range(8):
+        own, _ = retriever.describe(image, heading=(45.0 * i, 0.0))
+        np.testing.assert_allclose(descs[i], own[0], atol=1e-5)
+    np.testing.assert_allclose(descs[2], retriever.describe(np.rot90(image, 1))[0][0], atol=1e-5)
+    assert np.abs(descs[1] - black[1]).max() > 1e-3  # the diagonal differs from the black-cornered turn

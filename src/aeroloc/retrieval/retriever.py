@@ -130,16 +130,24 @@ class Retriever:
         return fit_within(image, self.max_query_side)
 
     def describe(
-        self, image: np.ndarray, rotations: int | None = None, heading: tuple[float, float] | None = None
+        self,
+        image: np.ndarray,
+        rotations: int | None = None,
+        heading: tuple[float, float] | None = None,
+        mirror: bool = False,
     ) -> tuple[np.ndarray, float]:
         """(k x dim descriptors of the query at its k headings, ms); shrinking and turning included. ``heading``
         (degrees clockwise from north, tolerance) describes the views of :func:`prior_views` instead of
-        ``rotations``; a tolerance of 180° or more is no heading."""
+        ``rotations``; a tolerance of 180° or more is no heading. ``mirror``: the k headings that are not
+        quarter turns are turned on a canvas that holds the whole query, corners mirrored (as a heading prior's
+        view), not cut to the query's own canvas with black corners."""
         k = self.rotations if rotations is None else check_rotations(rotations)
         t0 = time.perf_counter()
         image = self.shrink(image)
         if heading is not None and heading[1] < 180.0:  # a turned canvas is shrunk again, like any query
             views = [self.shrink(v) for v in prior_views(image, *heading)]
+        elif mirror and k > 1:
+            views = [self.shrink(prior_views(image, 360.0 * i / k, 0.0)[0]) for i in range(k)]
         elif k == 1:
             views = [image]
         else:
@@ -181,10 +189,16 @@ class Retriever:
         return out
 
     def __call__(
-        self, image: np.ndarray, top_n: int, rotations: int | None = None, heading: tuple[float, float] | None = None
+        self,
+        image: np.ndarray,
+        top_n: int,
+        rotations: int | None = None,
+        heading: tuple[float, float] | None = None,
+        mirror: bool = False,
     ) -> Retrieval:
-        """Top-N tiles for one query; ``heading`` (degrees clockwise from north, tolerance) as in :meth:`describe`."""
-        desc, t_desc = self.describe(image, rotations, heading)
+        """Top-N tiles for one query; ``heading`` (degrees clockwise from north, tolerance) and ``mirror`` as in
+        :meth:`describe`."""
+        desc, t_desc = self.describe(image, rotations, heading, mirror)
         r = self.rank([desc], top_n)[0]
         r.times_ms = {"descriptor": t_desc, **r.times_ms}
         return r

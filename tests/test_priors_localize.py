@@ -376,3 +376,30 @@ def test_a_heading_prior_turns_the_query_upright_before_retrieval(levir_db, data
     top1, top5 = ([sum(r is not None and r < n for r in ranks) for ranks in (upright, turned)] for n in (1, 5))
     assert top5[1] >= 33 and top5[1] >= top5[0] + 6, top5
     assert top1[1] >= 24 and top1[1] >= top1[0] + 8, top1
+
+
+def test_a_tile_the_matcher_fails_at_a_quarter_turn_is_matched_at_the_screens_own_angle(levir_db, data_dir):
+    """levir_any_4_06 looks 65°, no prior. On its true tile, at the 90° turn (25° of residual turn) the screen
+    settles the heading (25 inliers measured) but the matcher breaks (3); the query turned by the screen's own
+    angle is matched again (``screen_turns``) and passes (240 measured), placing the photo within 5 m."""
+    from aeroloc.localization.alignment import align
+    from aeroloc.localization.cascade import Reranker
+    from aeroloc.localization.localizer import Localizer
+
+    q = next(
+        q
+        for q in load_queries(data_dir / "multi-region/levir-tx/any/queries.csv", priors="none")
+        if q.name == "levir_any_4_06.jpg"
+    )
+    loc = Localizer(levir_db)
+    col, row = loc.map.latlon_to_pixel(q.lat, q.lon)
+    tiles = loc._tiles_around(float(col), float(row), [])[:4]  # the tiles holding its centre
+    image = read_image(q.path)
+    off = Reranker(levir_db, "xfeat-lighterglue", conf={"screen_turns": 0})(image, tiles, 0, rotations=[1])
+    on = loc.reranker(image, tiles, 1, rotations=[1])
+    c_off, c_on = max(off.candidates, key=lambda c: c.screen), on.candidates[0]
+    floor = loc.reranker.conf["min_inliers"]
+    assert c_off.screen >= loc.reranker.conf["min_screen"] and c_off.inliers < floor, (c_off.screen, c_off.inliers)
+    assert c_on.inliers >= floor, c_on.inliers
+    a = align(c_on.H, c_on.score, (image.shape[1], image.shape[0]), levir_db.by_id[c_on.tile_id], loc.map_size, floor)
+    assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status

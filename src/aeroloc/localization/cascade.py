@@ -19,6 +19,9 @@ re-ranking runs in two stages on features that are extracted once per query and 
    tiles reached <= 24 similarity inliers and right ones a median of 89 (NAIP) / 356 (Toledo), and wrong tiles
    reached <= 20 screen inliers, so a strong screen is trusted as it is and the matcher settles the rest.
    A best match that stays weak is re-matched on the map window it points at (``refine_min``, aeroloc.localization.window).
+   A candidate the matcher fails although its screen settled a heading is matched once more with the query turned
+   by the screen transform's own angle (``screen_turns``): the screen's mutual nearest neighbours hold at 25° of
+   residual turn where the learned matcher breaks, and the screen's transform tells the turn that is left.
 
 Ordering: matcher-verified candidates by inliers, then screened ones by screen inliers, then the unvisited
 in retrieval order; ties keep the retrieval order (stable).
@@ -245,6 +248,21 @@ class Reranker:
             c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
         return len(more)
 
+    def _screen_angle(self, c: Candidate, turn_deg: float) -> float | None:
+        """The OpenCV angle that turns the query map-aligned by ``c``'s screen transform, when its screen settled
+        a heading (``min_screen``) and that angle lies ``screen_turn_min_deg`` or more off the turn it was
+        screened at (``turn_deg`` + its rotation); else None. levir-tx/any, no prior: levir_any_4_06 looks 65°,
+        its true tile screened 25 inliers at the 90° turn and the matcher 3 there (25° of residual turn)."""
+        from aeroloc.localization.structure_refine import placement_of
+        from aeroloc.matching.features import turn_gap
+
+        if c.H is None or c.screen < self.conf["min_screen"] or c.rot_k >= 2 * DIAGONAL:
+            return None
+        angle = placement_of(c.H)[0]
+        if turn_gap(angle - float(turn_deg), c.rot_k) < self.conf.get("screen_turn_min_deg", 10.0):
+            return None
+        return angle
+
     def __call__(
         self, image: np.ndarray, tile_ids: list[str], top_k: int = 1, rotations=None, turn_deg: float = 0.0
     ) -> Reranked:
@@ -280,10 +298,21 @@ class Reranker:
             until_pass = True
         else:  # the straightforward loop: the matcher on every candidate x rotation
             to_verify, until_pass = [(c, rots) for c in cands], False
+        turns_left = self.conf.get("screen_turns", 0)
         for c, ks in to_verify:
+            screen_angle = self._screen_angle(c, turn_deg)
             for k in ks:
                 c.take(*self.match_pair(features(k), tfs[c.tile_id]), k, "verify")
                 n_verified += 1
+            if until_pass and screen_angle is not None and turns_left > 0 and c.inliers < self.conf["min_inliers"]:
+                # the screen placed this tile at a turn the matcher could not bridge: match at the screen's own
+                key = 2 * DIAGONAL + len(query)  # past the rotation indices, so a rotation never reads it
+                t = time.perf_counter()
+                query[key] = extract(self.extractor, image, self.conf["query_side"], 0, turn_deg=screen_angle)
+                t_extract += time.perf_counter() - t
+                c.take(*self.match_pair(query[key], tfs[c.tile_id]), key, "verify")
+                n_verified += 1
+                turns_left -= 1
             if until_pass and c.inliers >= self.conf["min_inliers"] and self.doubt(c) is None:
                 break
         order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))

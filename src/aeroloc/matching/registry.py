@@ -68,6 +68,12 @@ CASCADE_DEFAULTS = {
     # an accepted match whose query footprint reaches this share of a tile side beyond the tile is re-matched
     # against its map window too, and the window's result kept when it has more inliers; None: off
     "refine_outside": None,
+    # a candidate the matcher fails (< min_inliers) although its screen settled a heading (>= min_screen) is
+    # matched once more with the query turned by the screen's own angle, when that lies this many degrees or
+    # more off the turn tried (the matcher breaks beyond ~20-25° of residual turn, the screen holds longer);
+    # at most ``screen_turns`` candidates a query (0: off)
+    "screen_turn_min_deg": 10.0,
+    "screen_turns": 1,
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see EXTRACTORS and reranker_conf
     "matcher": {},  # overrides of the matcher conf
 }

@@ -154,6 +154,27 @@ def test_doubt_rule_overrules_a_weak_screen_only_where_configured(reranker):
         reranker.conf = old
 
 
+def test_a_screen_turn_is_asked_for_only_where_the_screen_settled_a_heading_far_from_the_turn_tried(reranker):
+    """``_screen_angle``: the OpenCV angle that turns the query map-aligned by a candidate's screen transform, when
+    the screen reached ``min_screen`` and the angle lies ``screen_turn_min_deg`` or more off the turn screened
+    (its rotation plus the prior's turn); None otherwise, and for a transform with no finite angle."""
+
+    def screened(angle_deg: float, screen: int, rot_k: int) -> Candidate:
+        t = np.radians(-angle_deg)  # placement_of: the angle turning the query onto the map undoes H's rotation
+        H = np.array([[np.cos(t), -np.sin(t), 5.0], [np.sin(t), np.cos(t), 7.0], [0.0, 0.0, 1.0]])
+        return Candidate("t", 0, screen=screen, rot_k=rot_k, H=H)
+
+    floor = reranker.conf["min_screen"]
+    assert reranker._screen_angle(screened(65.0, floor, 1), 0.0) == pytest.approx(65.0)  # 25° off the 90° turn
+    assert reranker._screen_angle(screened(85.0, floor, 1), 0.0) is None  # 5° off: the matcher bridges it
+    assert reranker._screen_angle(screened(65.0, floor - 1, 1), 0.0) is None  # no heading settled
+    assert reranker._screen_angle(screened(65.0, floor, 0), 60.0) is None  # the prior's turn counts
+    assert reranker._screen_angle(screened(65.0, floor, 0), 30.0) == pytest.approx(65.0)
+    nan = screened(65.0, floor, 1)
+    nan.H = np.full((3, 3), np.nan)
+    assert reranker._screen_angle(nan, 0.0) is None
+
+
 def test_retriever_shrinks_queries_larger_than_a_tile(db):
     side = max(max(t.width, t.height) for t in db.tiles)
     r = Retriever(db, "xfeat-vlad", "cpu", query_scale=1.0)

@@ -259,7 +259,9 @@ class Reranker:
         if c.H is None or c.screen < self.conf["min_screen"] or c.rot_k >= 2 * DIAGONAL:
             return None
         angle = placement_of(c.H)[0]
-        if turn_gap(angle - float(turn_deg), c.rot_k) < self.conf.get("screen_turn_min_deg", 10.0):
+        if not np.isfinite(angle) or turn_gap(angle - float(turn_deg), c.rot_k) < self.conf.get(
+            "screen_turn_min_deg", 10.0
+        ):
             return None
         return angle
 

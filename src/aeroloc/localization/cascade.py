@@ -30,6 +30,7 @@ in retrieval order; ties keep the retrieval order (stable).
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,6 +82,40 @@ def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarra
     return mnn(d0, d1, min_sim)[0]
 
 
+class Screens:
+    """Screen results by (tile, rotation), each computed once: in the caller's order, or ahead of it on a second
+    core. A screen is a pure function of its two feature sets (mutual nearest neighbours, then MAGSAC and RANSAC,
+    which seed every call), so the order and the thread they are computed in change no result, only when it is
+    ready; the cascade's own order decides which results are used, so a result computed ahead and not asked for
+    is dropped. ``threads`` 1 computes every screen on demand, in the caller's thread."""
+
+    def __init__(self, screen_pair, features, tfs: dict, pool: ThreadPoolExecutor | None):
+        self._screen_pair, self._features, self._tfs, self._pool = screen_pair, features, tfs, pool
+        self._ahead: dict[tuple[str, int], Future] = {}
+
+    def ahead(self, pairs) -> None:
+        """Start the screens of ``pairs`` ((tile id, rotation)) on the pool; their query features are extracted
+        here first (only pass rotations the cascade extracts anyway)."""
+        if self._pool is None:
+            return
+        for t, k in pairs:
+            if (t, k) not in self._ahead:
+                self._ahead[(t, k)] = self._pool.submit(self._screen_pair, self._features(k), self._tfs[t])
+
+    def __call__(self, tile_id: str, k: int):
+        """The screen of ``tile_id`` at rotation ``k``: (inliers, H, matches, visualisation)."""
+        f = self._ahead.pop((tile_id, k), None)
+        return f.result() if f is not None else self._screen_pair(self._features(k), self._tfs[tile_id])
+
+    def close(self) -> None:
+        """Drop the screens started ahead and not asked for (waiting for any still running: its core is the
+        next stage's)."""
+        for f in self._ahead.values():
+            f.cancel()
+        wait(list(self._ahead.values()))
+        self._ahead.clear()
+
+
 class Reranker:
     """Holds the extractor/matcher and the tile feature store of one database."""
 
@@ -93,6 +128,22 @@ class Reranker:
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
         self._orientation: dict[str, float] = {}
+        self._pool: ThreadPoolExecutor | None = None
+
+    def _screen_pool(self) -> ThreadPoolExecutor | None:
+        """The threads screens run on ahead of the cascade's order (:class:`Screens`): the conf's
+        ``screen_threads``, else torch's thread count (what ``OMP_NUM_THREADS`` allows this process), at most 2;
+        None for one. The pool is kept for the re-ranker's life."""
+        n = self.conf.get("screen_threads")
+        if n is None:
+            import torch
+
+            n = min(2, torch.get_num_threads())
+        if int(n) <= 1:
+            return None
+        if self._pool is None or self._pool._max_workers != int(n):
+            self._pool = ThreadPoolExecutor(int(n), thread_name_prefix="aeroloc-screen")
+        return self._pool
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
         """From the store; tiles not there yet are extracted once and written (lazy cache)."""
@@ -191,7 +242,7 @@ class Reranker:
 
         return family
 
-    def _screen(self, cands: list[Candidate], rots: list[int], features, tfs: dict, families=None) -> int:
+    def _screen(self, cands: list[Candidate], rots: list[int], screens: Screens, families=None) -> int:
         """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
 
         Rotation-major on the first ``rotation_probe`` candidates: all of them at the upright rotation first, the
@@ -199,7 +250,9 @@ class Reranker:
         rotation while none is). Stops at the first candidate reaching ``early_exit``, after screening the next
         ``after_exit`` unvisited candidates at its turn (:meth:`_after_exit`). With ``families`` (tile
         id -> its rotations, :meth:`_families`; the heading unknown) the probe tries all eight rotations, and a
-        later candidate, while the heading is not settled, its own list.
+        later candidate, while the heading is not settled, its own list. ``screens`` computes them (ahead of this
+        order on a second core where the process has one: the probe's candidates at a rotation together, and the
+        next candidate at the settled rotation while one is screened).
         """
         c_ = self.conf
         best = {"rot": rots[0], "score": -1}
@@ -207,7 +260,7 @@ class Reranker:
 
         def screen(c: Candidate, k: int) -> bool:
             nonlocal n
-            c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
+            c.take(*screens(c.tile_id, k), k, "screen")
             n += 1
             if c.screen > best["score"] and c.rot_k == k:
                 best.update(rot=k, score=c.screen)
@@ -223,29 +276,33 @@ class Reranker:
             yield from [r for r in first if r != 0] + [r for r in range(2 * DIAGONAL) if r not in first]
 
         for k in probe_order() if families else rots:
+            screens.ahead((c.tile_id, k) for c in probe)
             if any(screen(c, k) for c in probe):
-                return n + self._after_exit(cands, k, features, tfs)
+                return n + self._after_exit(cands, k, screens)
             if best["score"] >= c_["min_screen"]:
                 break
-        for c in rest:
+        for i, c in enumerate(rest):
             settled = best["score"] >= c_["min_screen"]
             own = families(c.tile_id) if families and not settled else rots  # settled: its turn alone
+            if settled:  # this candidate and the next at the settled turn: the next is what the loop asks for
+                screens.ahead((r.tile_id, best["rot"]) for r in rest[i : i + 2])
             for k in [best["rot"]] + [r for r in own if r != best["rot"]]:
                 if k != best["rot"] and best["score"] >= c_["min_screen"]:
                     break  # the heading is settled
                 if screen(c, k):
-                    return n + self._after_exit(cands, k, features, tfs)
+                    return n + self._after_exit(cands, k, screens)
         return n
 
-    def _after_exit(self, cands: list[Candidate], k: int, features, tfs: dict) -> int:
+    def _after_exit(self, cands: list[Candidate], k: int, screens: Screens) -> int:
         """After an early exit at rotation ``k``: the next ``after_exit`` unvisited candidates (retrieval order)
         screened at ``k``, so that a repeated place ranked after the first strong one can still rival it
         (aeroloc.localization.localizer.Localizer._rival) or beat it. On szada-hu/any (rough priors) a forest
         edge 546 m from the truth screened 45-55 inliers at retrieval rank 1-3 and ended the screen; the true
         tiles, at ranks 2-10, screened 30-67. Returns the number screened."""
         more = [c for c in cands if c.screen < 0][: self.conf["after_exit"]]
+        screens.ahead((c.tile_id, k) for c in more)
         for c in more:
-            c.take(*self.screen_pair(features(k), tfs[c.tile_id]), k, "screen")
+            c.take(*screens(c.tile_id, k), k, "screen")
         return len(more)
 
     def _screen_angle(self, c: Candidate, turn_deg: float) -> float | None:
@@ -291,7 +348,11 @@ class Reranker:
         if self.conf["screen"]:
             unknown = rotations is None and not turn_deg and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
             families = self._families(image) if unknown and cands else None
-            n_screened = self._screen(cands, rots, features, tfs, families)
+            screens = Screens(self.screen_pair, features, tfs, self._screen_pool())
+            try:
+                n_screened = self._screen(cands, rots, screens, families)
+            finally:
+                screens.close()
             screened = sorted((c for c in cands if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
             accept = self.conf["accept_screen"]
             if screened and accept is not None and screened[0].screen >= accept:

@@ -74,6 +74,9 @@ CASCADE_DEFAULTS = {
     # at most ``screen_turns`` candidates a query (0: off)
     "screen_turn_min_deg": 10.0,
     "screen_turns": 1,
+    # threads the screens run on (aeroloc.localization.cascade.Screens: the same results in any order); None:
+    # torch's thread count (OMP_NUM_THREADS), at most 2
+    "screen_threads": None,
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see EXTRACTORS and reranker_conf
     "matcher": {},  # overrides of the matcher conf
 }

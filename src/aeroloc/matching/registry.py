@@ -145,6 +145,9 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     conf = {**base, **(overrides or {})}
     if bad:
         raise AerolocError(f"unknown re-ranker option(s) {sorted(bad)}")
+    threads = conf["screen_threads"]
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise AerolocError(f"re-ranker option screen_threads must be None or an integer >= 1, got {threads!r}")
     return conf
 
 

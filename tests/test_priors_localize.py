@@ -403,3 +403,38 @@ def test_a_tile_the_matcher_fails_at_a_quarter_turn_is_matched_at_the_screens_ow
     assert c_on.inliers >= floor, c_on.inliers
     a = align(c_on.H, c_on.score, (image.shape[1], image.shape[0]), levir_db.by_id[c_on.tile_id], loc.map_size, floor)
     assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status
+
+
+@pytest.mark.slow
+def test_a_weak_screen_halfway_between_two_turns_is_screened_again_at_its_own_angle(szada_db, data_dir):
+    """szada_any_5_04 looks 20°, no prior: halfway between the upright turn and the diagonal. At the diagonal its
+    true tiles screen 18-19 inliers (below the 20 that settle a heading) and the matcher fails them, so the
+    cascade found nothing and the photo went unlocalized. Screened again with the query turned by their own
+    screen's angle (``weak_screen_turns``) they reach 39-49 (measured) and the matcher passes one: within 5 m.
+    The same photo, no prior, through the whole pipeline: placed within 5 m."""
+    from aeroloc.localization.alignment import align
+    from aeroloc.localization.localizer import Localizer
+
+    q = next(
+        q
+        for q in load_queries(data_dir / "multi-region/szada-hu/any/queries.csv", priors="none")
+        if q.name == "szada_any_5_04.jpg"
+    )
+    loc = Localizer(szada_db)
+    col, row = loc.map.latlon_to_pixel(q.lat, q.lon)
+    tiles = loc._tiles_around(float(col), float(row), [])[:4]  # the tiles holding its centre
+    image = read_image(q.path)
+    conf = loc.reranker.conf
+    rr = loc.reranker(image, tiles, 1, rotations=[4])
+    assert not any(loc.reranker._passes(c) for c in rr.ranked)
+    assert max(c.screen for c in rr.ranked) >= conf["weak_screen_min"]
+    assert loc.reranker.weak_screen_turns(rr)
+    c = rr.candidates[0]
+    assert c.screen >= conf["min_screen"] and c.inliers >= conf["min_inliers"], (c.screen, c.inliers)
+    assert c.rot_k >= 8  # placed at a screen's own angle, not at a rotation
+    a = align(
+        c.H, c.score, (image.shape[1], image.shape[0]), szada_db.by_id[c.tile_id], loc.map_size, conf["min_inliers"]
+    )
+    assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status

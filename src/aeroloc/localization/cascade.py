@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aeroloc.matching.features import DIAGONAL, extract, to_original
+from aeroloc.matching.features import DIAGONAL, extract, to_original, turn_gap
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
 
@@ -73,6 +73,13 @@ class Reranked:
     n_verified: int = 0
     query: dict = field(default_factory=dict)  # rot_k -> the query's features extracted on the way
     ranked: list[Candidate] = field(default_factory=list)  # every candidate, best first (``candidates``: top K)
+    features: QueryFeatures | None = None  # the query's features (``query`` is their dict), for later steps
+
+
+def _rank(c: Candidate) -> tuple:
+    """The cascade's order: matcher-verified candidates by inliers, then screened ones by screen inliers, then the
+    unvisited in retrieval order."""
+    return (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank)
 
 
 def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarray:
@@ -114,6 +121,41 @@ class Screens:
             f.cancel()
         wait(list(self._ahead.values()))
         self._ahead.clear()
+
+
+class QueryFeatures:
+    """One query's local features per rotation (rot_k -> features) at one exact turn, each extracted once for
+    the whole localization: every cascade over the same photo (the upright retrieval's tiles, then the turned
+    retrieval's) shares them. ``seconds`` is the time spent extracting. Started ahead on the second core while
+    retrieval describes the photo, the first rotation was measured and not adopted (levir-tx/any, rough priors,
+    2 threads: the descriptor slowed from 81 to 131 ms beside it, 27 ms saved a query; no priors: the turned
+    retrieval's descriptors slowed by ~250 ms, torch's second thread team on the same two cores)."""
+
+    def __init__(self, extractor, image: np.ndarray, side: int, turn_deg: float = 0.0):
+        self.image, self.turn_deg = image, float(turn_deg)
+        self._extractor, self._side = extractor, side
+        self.done: dict[int, dict] = {}
+        self.seconds = 0.0
+
+    def fits(self, image: np.ndarray, turn_deg: float) -> bool:
+        return image is self.image and float(turn_deg) == self.turn_deg
+
+    def _extract(self, key: int, k: int, turn_deg: float) -> dict:
+        t = time.perf_counter()
+        self.done[key] = extract(self._extractor, self.image, self._side, k, turn_deg=turn_deg)
+        self.seconds += time.perf_counter() - t
+        return self.done[key]
+
+    def __call__(self, k: int) -> dict:
+        """The features at rotation ``k`` (0-3 quarter turns, 4-7 diagonals)."""
+        return self.done[k] if k in self.done else self._extract(k, k, self.turn_deg)
+
+    def at_angle(self, turn_deg: float) -> int:
+        """Extract the query at the exact turn ``turn_deg`` (no rotation) and return the key it is kept under:
+        past the rotation indices, so a rotation never reads it."""
+        key = 2 * DIAGONAL + len(self.done)
+        self._extract(key, 0, turn_deg)
+        return key
 
 
 class Reranker:
@@ -313,7 +355,6 @@ class Reranker:
         screened at (``turn_deg`` + its rotation); else None. levir-tx/any, no prior: levir_any_4_06 looks 65°,
         its true tile screened 25 inliers at the 90° turn and the matcher 3 there (25° of residual turn)."""
         from aeroloc.localization.structure_refine import placement_of
-        from aeroloc.matching.features import turn_gap
 
         if c.H is None or c.screen < self.conf["min_screen"] or c.rot_k >= 2 * DIAGONAL:
             return None
@@ -324,28 +365,85 @@ class Reranker:
             return None
         return angle
 
+    def query_features(self, image: np.ndarray, turn_deg: float = 0.0) -> QueryFeatures:
+        """A photo's features for this re-ranker at ``turn_deg``, to share between its cascades."""
+        return QueryFeatures(self.extractor, image, self.conf["query_side"], turn_deg)
+
+    def _passes(self, c: Candidate) -> bool:
+        """Whether the matcher verified ``c`` (``min_inliers``) and nothing casts doubt on it."""
+        return c.inliers >= self.conf["min_inliers"] and self.doubt(c) is None
+
+    def weak_screen_turns(self, rr: Reranked) -> bool:
+        """After a cascade (and the localizer's window re-alignments) found nothing: the best
+        ``weak_screen_turns`` screened candidates of ``rr`` (at least ``weak_screen_min`` inliers, below what
+        settles a heading) screened again with the query turned by their own screen's angle, and those reaching
+        ``min_screen`` there matched at it, until one passes; ``rr`` re-ordered in place (its times added). True
+        when one passed. A query halfway between two of the turns tried (20-25° off both) screens weakly on its
+        true tile, but that weak screen's transform holds the turn left: szada_any_5_04 (20° heading, no prior)
+        screened 18-19 on its two true tiles at 45°, and 49 and 39 with the query turned by their own 19.8° and
+        20.1° (the matcher then 119 on one); the wrong tiles it screened 12-22 stayed at 7-16 at their own angles.
+        The re-screen counts as the candidate's screen and the usual rules accept the result. Angles within
+        ``screen_turn_min_deg`` of each other share one extraction."""
+        from aeroloc.localization.structure_refine import placement_of
+
+        c_, query = self.conf, rr.features
+        if not (c_["screen"] and c_["max_verify"] and c_.get("weak_screen_turns", 0)) or query is None:
+            return False
+        t0, seconds0 = time.perf_counter(), query.seconds
+        floor, settle = c_["weak_screen_min"], c_["min_screen"]
+        weak = sorted(
+            (c for c in rr.ranked if floor <= c.screen < settle and c.rot_k < 2 * DIAGONAL and c.H is not None),
+            key=lambda c: (-c.screen, c.retrieval_rank),
+        )[: c_["weak_screen_turns"]]
+        tfs = self.tile_features([c.tile_id for c in weak])
+        keys: dict[float, int] = {}  # angle -> the query features' key at it
+        passed = False
+        for c in weak:
+            angle = placement_of(c.H)[0]
+            if not np.isfinite(angle) or turn_gap(angle - query.turn_deg, c.rot_k) < c_["screen_turn_min_deg"]:
+                continue
+            near = [k for a, k in keys.items() if turn_gap(angle - a, 0) < c_["screen_turn_min_deg"]]
+            key = near[0] if near else keys.setdefault(angle, query.at_angle(angle))
+            c.take(*self.screen_pair(query.done[key], tfs[c.tile_id]), key, "screen")
+            rr.n_screened += 1
+            if c.screen < settle or c.rot_k != key:
+                continue
+            c.take(*self.match_pair(query.done[key], tfs[c.tile_id]), key, "verify")
+            rr.n_verified += 1
+            if self._passes(c):
+                passed = True
+                break
+        rr.ranked.sort(key=_rank)
+        rr.candidates = rr.ranked[: len(rr.candidates)]
+        extract_ms = (query.seconds - seconds0) * 1000
+        rr.times_ms["local_features"] = rr.times_ms.get("local_features", 0.0) + extract_ms
+        rr.times_ms["rerank"] = rr.times_ms.get("rerank", 0.0) + (time.perf_counter() - t0) * 1000 - extract_ms
+        return passed
+
     def __call__(
-        self, image: np.ndarray, tile_ids: list[str], top_k: int = 1, rotations=None, turn_deg: float = 0.0
+        self,
+        image: np.ndarray,
+        tile_ids: list[str],
+        top_k: int = 1,
+        rotations=None,
+        turn_deg: float = 0.0,
+        query: QueryFeatures | None = None,
     ) -> Reranked:
         """Re-rank ``tile_ids`` for ``image``; ``rotations`` (indices of aeroloc.matching.features.rotation_angle:
         0-3 quarter turns CCW, 4-7 diagonals) overrides the conf's, e.g. the one a heading prior points at;
         ``turn_deg`` (OpenCV degrees) turns the query exactly before them (a heading prior's own angle).
-        Transforms relate the original image whatever the turn."""
+        ``query``: the photo's features extracted so far (:meth:`query_features`), used when it holds this image
+        at this turn; otherwise each rotation is extracted on first use (an upright photo that matches costs one
+        extraction). Transforms relate the original image whatever the turn."""
         t0 = time.perf_counter()
         tfs = self.tile_features(tile_ids)
-        t_extract = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
+        t_tiles = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
         cands = [Candidate(t, i) for i, t in enumerate(tile_ids)]
         rots = [k % 8 for k in (self.conf["rotations"] if rotations is None else rotations)]
         n_screened = n_verified = 0
-        query = {}  # rot_k -> features, extracted on first use: an upright photo that matches costs one extraction
-
-        def features(k):
-            nonlocal t_extract
-            if k not in query:
-                t = time.perf_counter()
-                query[k] = extract(self.extractor, image, self.conf["query_side"], k, turn_deg=turn_deg)
-                t_extract += time.perf_counter() - t
-            return query[k]
+        if query is None or not query.fits(image, turn_deg):
+            query = self.query_features(image, turn_deg)
+        features, seconds0 = query, query.seconds
 
         if self.conf["screen"]:
             unknown = rotations is None and not turn_deg and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
@@ -371,22 +469,21 @@ class Reranker:
                 n_verified += 1
             if until_pass and screen_angle is not None and turns_left > 0 and c.inliers < self.conf["min_inliers"]:
                 # the screen placed this tile at a turn the matcher could not bridge: match at the screen's own
-                key = 2 * DIAGONAL + len(query)  # past the rotation indices, so a rotation never reads it
-                t = time.perf_counter()
-                query[key] = extract(self.extractor, image, self.conf["query_side"], 0, turn_deg=screen_angle)
-                t_extract += time.perf_counter() - t
-                c.take(*self.match_pair(query[key], tfs[c.tile_id]), key, "verify")
+                key = query.at_angle(screen_angle)
+                c.take(*self.match_pair(query.done[key], tfs[c.tile_id]), key, "verify")
                 n_verified += 1
                 turns_left -= 1
-            if until_pass and c.inliers >= self.conf["min_inliers"] and self.doubt(c) is None:
+            if until_pass and self._passes(c):
                 break
-        order = sorted(cands, key=lambda c: (c.inliers < 0, -c.inliers, c.screen < 0, -c.screen, c.retrieval_rank))
+        order = sorted(cands, key=_rank)
         total = time.perf_counter() - t0
+        t_extract = t_tiles + query.seconds - seconds0
         return Reranked(
             order[:top_k] if top_k else order,
             {"local_features": t_extract * 1000, "rerank": (total - t_extract) * 1000},
             n_screened,
             n_verified,
-            query,
+            query.done,
             order,
+            query,
         )

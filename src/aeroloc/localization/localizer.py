@@ -136,14 +136,16 @@ class Localizer:
         return True
 
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
+        # the photo's local features, shared by every cascade of this localization (each rotation extracted once)
+        query = self.reranker.query_features(image, prior_turn(priors)[1]) if self.reranker is not None else None
         r = self.retriever(image, top_n, heading=prior_heading(priors))
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
         known = priors is not None and priors.known
         if known and self.sweep is not None and self.reranker is not None:
             # a heading or scale prior: the cascade at the turns the heading allows, then the sweep narrowed to it
-            self._cascade(image, r.tile_ids, top_k, priors, out)
+            self._cascade(image, r.tile_ids, top_k, priors, out, query=query)
             if not out.localized and AMBIGUOUS not in out.status:
-                self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out)
+                self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
             if not out.localized and AMBIGUOUS not in out.status:
                 self._sweep_fix(image, priors, out, r.tile_ids, top_k)
             return out
@@ -171,16 +173,16 @@ class Localizer:
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
             out.status = "retrieval only"
             return out
-        self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms)
+        self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms, query)
         if not out.localized and AMBIGUOUS not in out.status:
-            self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out)
+            self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
         ambiguous = AMBIGUOUS in out.status  # two places match: no later stage may pick one of them
         if not out.localized and self.sweep is not None and not known and not self.options.north_up and not ambiguous:
             # heading unknown and the quarter turns found nothing: every heading and scale
             self._sweep_fix(image, None, out, r.tile_ids, top_k)
         return out
 
-    def _turned_retrieval(self, image, tried: list[str], top_n: int, top_k: int, priors, out: Localization) -> None:
+    def _turned_retrieval(self, image, tried: list[str], top_n: int, top_k: int, priors, out: Localization, query=None):
         """When the cascade found nothing on the upright query's tiles: retrieve again with the query described at
         ``TURNED_RETRIEVAL_VIEWS`` headings, 45° apart (tiles are upright, so a turned photo's own descriptor can
         miss its place), and run the cascade on the tiles not tried yet. The quarter turns are exact; the
@@ -200,13 +202,24 @@ class Localizer:
         seen = set(tried)
         new = [t for t in r4.tile_ids if t not in seen]
         if new:
-            self._cascade(image, new, top_k, priors, out)
+            self._cascade(image, new, top_k, priors, out, query=query)
 
-    def _cascade(self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms: float = 0.0):
-        """Re-rank the retrieved tiles at the quarter turns the heading allows, align the best one into ``out``."""
+    def _cascade(self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms=0.0, query=None):
+        """Re-rank the retrieved tiles at the quarter turns the heading allows, align the best one into ``out``;
+        ``query``: the photo's features extracted so far (aeroloc.localization.cascade.QueryFeatures)."""
         rotations, turn = prior_turn(priors, self._diagonals)
-        rr = self.reranker(image, tile_ids, top_k, rotations=rotations, turn_deg=turn)
+        rr = self.reranker(image, tile_ids, top_k, rotations=rotations, turn_deg=turn, query=query)
         _add_times(out, rr.times_ms)
+        self._place(image, rr, out, extra_ms)
+        if not out.localized and AMBIGUOUS not in out.status:  # weak screens at their own angle, then again
+            before = dict(rr.times_ms)
+            if self.reranker.weak_screen_turns(rr):
+                self._place(image, rr, out)
+            _add_times(out, {k: v - before.get(k, 0.0) for k, v in rr.times_ms.items()})
+
+    def _place(self, image, rr, out: Localization, extra_ms: float = 0.0) -> None:
+        """Align the re-ranked best candidate into ``out``: doubts (screen vs matcher, a rival, doubled ground),
+        then the window re-alignment of a weak best and of the runners-up."""
         out.top_tiles = [c.tile_id for c in rr.candidates]
         best = rr.candidates[0]
         out.best = best

@@ -74,6 +74,11 @@ CASCADE_DEFAULTS = {
     # at most ``screen_turns`` candidates a query (0: off)
     "screen_turn_min_deg": 10.0,
     "screen_turns": 1,
+    # when no candidate passed: this many best weakly screened candidates (>= weak_screen_min inliers, < min_screen)
+    # screened again with the query turned by their own screen's angle, and matched there when that re-screen
+    # settles a heading (aeroloc.localization.cascade.Reranker._weak_screen_turns); 0: off
+    "weak_screen_turns": 3,
+    "weak_screen_min": 12,
     # threads the screens run on (aeroloc.localization.cascade.Screens: the same results in any order); None:
     # torch's thread count (OMP_NUM_THREADS), at most 2
     "screen_threads": None,

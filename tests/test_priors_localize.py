@@ -378,23 +378,26 @@ def test_a_heading_prior_turns_the_query_upright_before_retrieval(levir_db, data
     assert top1[1] >= 24 and top1[1] >= top1[0] + 8, top1
 
 
+def _true_tiles(db, queries_csv, name: str):
+    """(query without priors, a Localizer, the tiles holding the query's true centre, its image)."""
+    from aeroloc.localization.localizer import Localizer
+
+    q = next(q for q in load_queries(queries_csv, priors="none") if q.name == name)
+    loc = Localizer(db)
+    col, row = loc.map.latlon_to_pixel(q.lat, q.lon)
+    return q, loc, loc._tiles_around(float(col), float(row), [])[:4], read_image(q.path)
+
+
 def test_a_tile_the_matcher_fails_at_a_quarter_turn_is_matched_at_the_screens_own_angle(levir_db, data_dir):
     """levir_any_4_06 looks 65°, no prior. On its true tile, at the 90° turn (25° of residual turn) the screen
     settles the heading (25 inliers measured) but the matcher breaks (3); the query turned by the screen's own
     angle is matched again (``screen_turns``) and passes (240 measured), placing the photo within 5 m."""
     from aeroloc.localization.alignment import align
     from aeroloc.localization.cascade import Reranker
-    from aeroloc.localization.localizer import Localizer
 
-    q = next(
-        q
-        for q in load_queries(data_dir / "multi-region/levir-tx/any/queries.csv", priors="none")
-        if q.name == "levir_any_4_06.jpg"
+    q, loc, tiles, image = _true_tiles(
+        levir_db, data_dir / "multi-region/levir-tx/any/queries.csv", "levir_any_4_06.jpg"
     )
-    loc = Localizer(levir_db)
-    col, row = loc.map.latlon_to_pixel(q.lat, q.lon)
-    tiles = loc._tiles_around(float(col), float(row), [])[:4]  # the tiles holding its centre
-    image = read_image(q.path)
     off = Reranker(levir_db, "xfeat-lighterglue", conf={"screen_turns": 0})(image, tiles, 0, rotations=[1])
     on = loc.reranker(image, tiles, 1, rotations=[1])
     c_off, c_on = max(off.candidates, key=lambda c: c.screen), on.candidates[0]
@@ -413,17 +416,10 @@ def test_a_weak_screen_halfway_between_two_turns_is_screened_again_at_its_own_an
     screen's angle (``weak_screen_turns``) they reach 39-49 (measured) and the matcher passes one: within 5 m.
     The same photo, no prior, through the whole pipeline: placed within 5 m."""
     from aeroloc.localization.alignment import align
-    from aeroloc.localization.localizer import Localizer
 
-    q = next(
-        q
-        for q in load_queries(data_dir / "multi-region/szada-hu/any/queries.csv", priors="none")
-        if q.name == "szada_any_5_04.jpg"
+    q, loc, tiles, image = _true_tiles(
+        szada_db, data_dir / "multi-region/szada-hu/any/queries.csv", "szada_any_5_04.jpg"
     )
-    loc = Localizer(szada_db)
-    col, row = loc.map.latlon_to_pixel(q.lat, q.lon)
-    tiles = loc._tiles_around(float(col), float(row), [])[:4]  # the tiles holding its centre
-    image = read_image(q.path)
     conf = loc.reranker.conf
     rr = loc.reranker(image, tiles, 1, rotations=[4])
     assert not any(loc.reranker._passes(c) for c in rr.ranked)

@@ -236,3 +236,22 @@ def test_a_screen_started_ahead_and_not_asked_for_is_dropped():
         assert not s._ahead and len(calls) <= 4
         assert s("c", 5)[0] == 53  # dropped: computed again when asked for after all
     assert Screens(screen_pair, lambda k: k, {"a": 1}, None)("a", 2)[0] == 21
+
+
+def test_tile_features_kept_decoded_are_the_stored_ones_and_bounded(db):
+    """The re-ranker keeps the last ``tile_cache`` tiles' features decoded between queries: what it returns
+    equals a fresh read of the store, and it never holds more than the bound (or one call's tiles)."""
+    r = Reranker(db, "xfeat-lighterglue", "cpu", conf={"tile_cache": 3})
+    ids = [t.id for t in db.tiles[:6]]
+    first = r.tile_features(ids[:4])
+    assert len(r._tile_cache) == 4  # one call's tiles are all kept, whatever the bound
+    again = r.tile_features(ids[2:6])
+    assert len(r._tile_cache) == 4 and list(r._tile_cache)[-1] == ids[5]
+    with r.store.reader() as reader:
+        for t in ids[2:4]:
+            fresh = reader.get(t)
+            assert again[t] is first[t]  # read once, kept
+            assert fresh.keys() == again[t].keys()
+            assert all(np.array_equal(fresh[k], again[t][k]) for k in fresh)
+    r.tile_features(ids[:1])
+    assert len(r._tile_cache) <= 4 and ids[0] in r._tile_cache

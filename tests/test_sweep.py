@@ -87,6 +87,13 @@ def test_queries_that_cannot_be_localized_say_why():
     assert "smaller than the 32 px" in refusal(photo[:20, :300])
     assert "100 % no-data" in refusal(np.zeros((200, 300, 3), np.uint8))
     assert "uniform" in refusal(np.full((200, 300, 3), 128, np.uint8))
+    # the grey levels' spread is the same number as that of the mean over the channels, no-data left out
+    from aeroloc.core.images import valid_mask
+    from aeroloc.localization.screening import _grey
+
+    for img in (photo, np.where(np.arange(photo.shape[1])[None, :, None] < 100, 0, photo).astype(np.uint8)):
+        valid = valid_mask(img)
+        assert float(_grey(img)[valid].std()) == float(img[valid].astype(np.float32).mean(axis=-1).std())
     from aeroloc.core.priors import Priors
 
     far = Priors(gsd_m=0.01, gsd_tol=0.25)  # 1 cm/px against a 5 m/px map: 500x finer

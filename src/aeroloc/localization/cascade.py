@@ -201,7 +201,7 @@ class Reranker:
             new = {t: extract(self.extractor, self.db.tile_image(t), self.conf["tile_side"]) for t in missing}
             self.store.write_many(new)
             self._have |= set(missing)
-        cache, size = self._tile_cache, int(self.conf.get("tile_cache", 0))
+        cache, size = self._tile_cache, self.conf["tile_cache"]
         to_read = [t for t in dict.fromkeys(tile_ids) if t not in cache]
         if to_read:
             with self.store.reader() as r:
@@ -458,12 +458,12 @@ class Reranker:
         n_screened = n_verified = 0
         if query is None or not query.fits(image, turn_deg):
             query = self.query_features(image, turn_deg)
-        features, seconds0 = query, query.seconds
+        seconds0 = query.seconds
 
         if self.conf["screen"]:
             unknown = rotations is None and not turn_deg and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
             families = self._families(image) if unknown and cands else None
-            screens = Screens(self.screen_pair, features, tfs, self._screen_pool())
+            screens = Screens(self.screen_pair, query, tfs, self._screen_pool())
             try:
                 n_screened = self._screen(cands, rots, screens, families)
             finally:
@@ -480,7 +480,7 @@ class Reranker:
         for c, ks in to_verify:
             screen_angle = self._screen_angle(c, turn_deg)
             for k in ks:
-                c.take(*self.match_pair(features(k), tfs[c.tile_id]), k, "verify")
+                c.take(*self.match_pair(query(k), tfs[c.tile_id]), k, "verify")
                 n_verified += 1
             if until_pass and screen_angle is not None and turns_left > 0 and c.inliers < self.conf["min_inliers"]:
                 # the screen placed this tile at a turn the matcher could not bridge: match at the screen's own

@@ -76,7 +76,7 @@ CASCADE_DEFAULTS = {
     "screen_turns": 1,
     # when no candidate passed: this many best weakly screened candidates (>= weak_screen_min inliers, < min_screen)
     # screened again with the query turned by their own screen's angle, and matched there when that re-screen
-    # settles a heading (aeroloc.localization.cascade.Reranker._weak_screen_turns); 0: off
+    # settles a heading (aeroloc.localization.cascade.Reranker.weak_screen_turns); 0: off
     "weak_screen_turns": 3,
     "weak_screen_min": 12,
     # threads the screens run on (aeroloc.localization.cascade.Screens: the same results in any order); None:
@@ -151,10 +151,22 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     conf = {**base, **(overrides or {})}
     if bad:
         raise AerolocError(f"unknown re-ranker option(s) {sorted(bad)}")
-    threads = conf["screen_threads"]
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise AerolocError(f"re-ranker option screen_threads must be None or an integer >= 1, got {threads!r}")
+    for key, low, none_ok in INTEGER_OPTIONS:
+        v = conf[key]
+        if (v is None and none_ok) or (isinstance(v, int) and not isinstance(v, bool) and v >= low):
+            continue
+        what = f"None or an integer >= {low}" if none_ok else f"an integer >= {low}"
+        raise AerolocError(f"re-ranker option {key} must be {what}, got {v!r}")
     return conf
+
+
+# (option, smallest value, None allowed): counts a misspelt or negative value would break deep in a query
+INTEGER_OPTIONS = (
+    ("screen_threads", 1, True),
+    ("tile_cache", 0, False),
+    ("weak_screen_turns", 0, False),
+    ("weak_screen_min", 0, False),
+)
 
 
 def feature_overrides(conf: dict) -> dict:

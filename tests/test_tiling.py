@@ -279,7 +279,7 @@ def test_windows_database_has_the_same_tiles_csv_and_no_images(tmp_path, naip_ma
     assert (win / "tiles.csv").read_bytes() == (png / "tiles.csv").read_bytes()  # same columns, same values
     assert not (win / "images").exists() and report.images is False and report.image_bytes == 0
     ref = load_info(win)["map"]
-    assert {"path", "width", "height", "crs", "transform", "content_sha1"} <= set(ref)
+    assert {"path", "width", "height", "crs", "transform", "content_xxh3"} <= set(ref)
     a, b = TileSource(png), TileSource(win)
     assert a.has_images and not b.has_images
     n = len(load_tiles(win))
@@ -401,7 +401,7 @@ def test_a_map_hashed_before_is_not_read_again_until_it_changes(tmp_path, naip_m
         fresh = hash_cache.content_hash(open_map(m), TileGrid(open_map(m), 2, 0))
     assert not hash_cache.hash_cache_dir().exists()
     write_tiles(m, tmp_path / "db", zoom=2, overlap=0, progress=False)
-    assert load_info(tmp_path / "db")["map"]["content_sha1"] == fresh
+    assert load_info(tmp_path / "db")["map"]["content_xxh3"] == fresh
     assert len(list(hash_cache.hash_cache_dir().iterdir())) == 1
 
     def no_read(*a, **k):
@@ -456,3 +456,26 @@ def test_the_hash_cache_lives_beside_the_weights_cache(monkeypatch, tmp_path):
         for k, v in env.items():
             monkeypatch.setenv(k, v)
         assert hash_cache_dir() == cache_dir().parent / "map-hashes"
+
+
+def test_a_grid_made_before_xxh3_is_still_checked_with_its_sha1(tmp_path, naip_map, hash_cache):
+    """tiles.json of grids made before 2026-12-05 records SHA-1 (``content_sha1``): such a database still opens
+    when its map is unchanged, and is refused when the recorded pixels are not the map's."""
+    import json
+
+    from aeroloc.maps.tilesource import TileSource
+
+    db = tmp_path / "db"
+    write_tiles(naip_map, db, zoom=2, overlap=0, progress=False)
+    meta = json.loads((db / "tiles.json").read_text())
+    m, grid = open_map(naip_map), TileGrid(open_map(naip_map), 2, 0)
+    sha1 = hash_cache.content_hash(m, grid, "sha1")
+    assert len(sha1) == 40 and sha1 != meta["map"].pop("content_xxh3")
+    for recorded, ok in ((sha1, True), ("0" * 40, False)):
+        meta["map"]["content_sha1"] = recorded
+        (db / "tiles.json").write_text(json.dumps(meta))
+        if ok:
+            assert TileSource(db).image(0).shape[2] == 3
+        else:
+            with pytest.raises(AerolocError, match="pixels changed since the tile grid was made"):
+                TileSource(db).image(0)

@@ -433,7 +433,7 @@ def write_tiles(
     atomically), and an existing database with the same map and parameters is a cache hit. ``tiles.csv`` is
     written last, so a half-built folder is never taken for a complete one.
     """
-    from aeroloc.maps.windows import map_reference
+    from aeroloc.maps.windows import CONTENT_KEY, map_reference
 
     m = map_path if isinstance(map_path, Map) else open_map(map_path)
     grid = TileGrid(m, zoom, overlap, tile_m)
@@ -455,7 +455,7 @@ def write_tiles(
         rows, nbytes = None, 0
     report = replace(
         report,
-        map={**report.map, "content_sha1": map_reference(m, grid)["content_sha1"]},
+        map={**report.map, CONTENT_KEY: map_reference(m, grid)[CONTENT_KEY]},
         build_s=round(time.perf_counter() - t0, 3),
         image_bytes=nbytes,
     )

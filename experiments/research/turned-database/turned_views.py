@@ -64,7 +64,7 @@ def rank_of(order, true):
     return 99
 
 
-res = []
+res, ranks_true = [], []
 for q in qs:
     im = ret.shrink(read_image(q.path))
     d = describe_image(ret.model, im, "cpu")[0][0]
@@ -77,9 +77,11 @@ for q in qs:
     e = int(np.argmax(s))
     turn = 360.0 * (e % K) / K
     # best turn on the true tile
-    tt = max(true, key=lambda j: D[j] @ d @ np.ones(1) if False else (D[j] @ d).max()) if true else None
+    tt = max(true, key=lambda j: (D[j] @ d).max()) if true else None  # the true tile nearest the photo
     tturn = 360.0 * int(np.argmax(D[tt] @ d)) / K if tt is not None else None
     h = heads[q.name]
+    if tt is not None:
+        ranks_true.append(list(np.argsort(-(D[tt] @ d))).index(int(round(h / (360 / K))) % K))
     err = lambda a: abs((a - h + 180) % 360 - 180)
     res.append((q.name, h, up_rank, rot_rank, turn, err(turn), tturn, err(tturn) if tturn is not None else None))
     print(
@@ -93,13 +95,5 @@ for n in (1, 3, 5, 20):
     )
 print("top1 turn within 22.5:", np.mean([r[5] <= 22.5 for r in res]), " within 30:", np.mean([r[5] <= 30 for r in res]))
 print("true tile's best turn within 22.5:", np.mean([r[7] <= 22.5 for r in res]))
-# rank of the correct 45-degree bin among the K turns, by the true tile's / top-1 tile's similarity
-ranks_true, ranks_top = [], []
-for q, r in zip(qs, res):
-    im = ret.shrink(read_image(q.path))
-    d = describe_image(ret.model, im, "cpu")[0][0]
-    true = [j for j, t in enumerate(db.tiles) if tile_contains(t, q.lat, q.lon)]
-    b = int(round(heads[q.name] / (360 / K))) % K
-    tt = max(true, key=lambda j: (D[j] @ d).max())
-    ranks_true.append(list(np.argsort(-(D[tt] @ d))).index(b))
+# rank of the correct 45-degree bin among the K turns, by the true tile's similarities
 print("rank of the right turn on the true tile:", np.bincount(ranks_true, minlength=K), "mean", np.mean(ranks_true))

@@ -40,6 +40,7 @@ def _spread(n: int, k: int) -> list[int]:
 
 
 def _hasher(algorithm: str):
+    """A fresh hash object of ``algorithm`` (a value of ``CONTENT_KEYS``)."""
     if algorithm == "xxh3":
         import xxhash
 
@@ -50,8 +51,8 @@ def _hasher(algorithm: str):
 
 
 def content_hash(m: Map, tiles: Sequence, algorithm: str = "xxh3") -> str:
-    """A hash (``algorithm``: xxh3-128, or SHA-1 for grids made before it) of what the grid reads, sampled: the decoded pixels of up to ``SAMPLE_WINDOWS`` evenly spaced tiles
-    of a raster (a COG decodes a window in ~1 ms), or the bytes of as many evenly spaced raw tile files of a tile
+    """A hash (``algorithm``: xxh3-128, or SHA-1 for grids made before it) of what the grid reads, sampled: the
+    decoded pixels of up to ``SAMPLE_WINDOWS`` evenly spaced tiles of a raster (a COG decodes a window in ~1 ms), or the bytes of as many evenly spaced raw tile files of a tile
     folder (decoding 1280 px PNGs to check would cost as much as the whole grid). Cached per file state
     (:func:`_cached`): a map read before and not changed since is not read again."""
     cells = getattr(m, "cells", None)
@@ -104,7 +105,7 @@ def _file_states(files: Sequence[Path]) -> list[list[int]]:
     return out
 
 
-def _cached(kind: str, files: Sequence[Path], extra: list, compute: Callable[[], str], algorithm: str = "xxh3") -> str:
+def _cached(kind: str, files: Sequence[Path], extra: list, compute: Callable[[], str], algorithm: str) -> str:
     """``compute()`` (a content hash of ``files``), remembered under the files' paths and states (size,
     mtime, ctime, inode). An entry is stored only when every file's last change (mtime and ctime) was at least
     ``HASH_CACHE_MIN_AGE_S`` before the read began and no state changed during it: a change that lands in the
@@ -119,7 +120,7 @@ def _cached(kind: str, files: Sequence[Path], extra: list, compute: Callable[[],
     entry = hash_cache_dir() / f"{key}.{algorithm}"
     with contextlib.suppress(OSError):
         got = entry.read_text().strip()
-        if len(got) == {"xxh3": 32, "sha1": 40}[algorithm]:
+        if len(got) == 2 * _hasher(algorithm).digest_size:  # a whole hex digest of this algorithm
             return got
     start_ns = time.time_ns()
     digest = compute()

@@ -168,6 +168,12 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
             with pytest.raises(AerolocError, match=rf"{key} must be an integer >= 0, got "):
                 LocalizeOptions(rerank_overrides={key: bad})
     assert LocalizeOptions(rerank_overrides={"tile_cache": 0}).cascade_conf()["tile_cache"] == 0
+    for key in ("geometry", "screen_geometry"):
+        with pytest.raises(AerolocError, match=rf"{key} must be one of homography, similarity, got 'affine'"):
+            LocalizeOptions(rerank_overrides={key: "affine"})
+    assert LocalizeOptions(rerank_overrides={"screen_geometry": "homography"}).cascade_conf()["screen_geometry"] == (
+        "homography"
+    )
     out = tmp_path / "r.csv"
     p = subprocess.run(
         [

@@ -12,6 +12,7 @@ from aeroloc.core import geo
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
+from aeroloc.localization.alignment import align
 from aeroloc.localization.cascade import Candidate, Reranker
 from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import Retriever
@@ -112,6 +113,54 @@ def test_diagonal_query_is_matched_at_its_diagonal_and_lands_on_the_same_spot(db
     _best, a = _localize(db, reranker, diagonal, tile_ids)
     assert a.localized, a.status
     assert geo.geodesic_distance(a0.lat, a0.lon, a.lat, a.lon) < 10.0
+
+
+@pytest.mark.slow
+def test_a_screen_fits_the_nadir_similarity_without_magsac_and_ranks_as_the_homography_did(
+    db, reranker, query, monkeypatch
+):
+    """The screen counts the inliers of a 2-point similarity RANSAC (``screen_geometry`` "similarity"), not a
+    MAGSAC homography: on the true tile both models give a clear screen that places the photo on the same spot,
+    and tiles a tile diagonal or more from the truth stay below what settles a heading under both."""
+    from aeroloc.matching import verify
+    from aeroloc.matching.features import extract
+
+    q, image = query
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
+    tfs = reranker.tile_features(tile_ids)
+    qf = extract(reranker.extractor, image, reranker.conf["query_side"], 0)
+    assert reranker.conf["screen_geometry"] == "similarity"
+    homography = Reranker(db, "xfeat-lighterglue", "cpu", {"screen_geometry": "homography"})
+    by_h = {t: homography.screen_pair(qf, tfs[t]) for t in tile_ids}
+
+    def no_magsac(*_a, **_k):
+        raise AssertionError("the similarity screen fitted a homography")
+
+    monkeypatch.setattr(verify, "verify_homography", no_magsac)
+    by_s = {t: reranker.screen_pair(qf, tfs[t]) for t in tile_ids}
+    best_s, best_h = (max(tile_ids, key=lambda t: by[t][0]) for by in (by_s, by_h))
+    assert best_s == best_h
+    assert min(by_s[best_s][0], by_h[best_h][0]) >= reranker.conf["accept_screen"], (by_s[best_s][0], by_h[best_h][0])
+    m = db.info["map"]
+    placed = [
+        align(
+            by[best_s][1],
+            by[best_s][0],
+            (image.shape[1], image.shape[0]),
+            db.by_id[best_s],
+            (int(m["width"]), int(m["height"])),
+            20,
+        )
+        for by in (by_s, by_h)
+    ]
+    assert all(a.localized for a in placed)
+    assert geo.geodesic_distance(placed[0].lat, placed[0].lon, placed[1].lat, placed[1].lon) < 5.0
+    assert geo.geodesic_distance(q.lat, q.lon, placed[0].lat, placed[0].lon) < 25.0
+    corners = db.by_id[best_s].corners_latlon
+    diagonal_m = geo.geodesic_distance(*corners[0], *corners[1])
+    far = [t for t in tile_ids if geo.geodesic_distance(q.lat, q.lon, *db.by_id[t].centre_latlon) > diagonal_m]
+    assert far, "the test needs candidates away from the truth"
+    assert max(by[t][0] for by in (by_s, by_h) for t in far) < reranker.conf["min_screen"]
 
 
 def test_diagonal_features_map_back_to_the_original_frame(reranker, query):

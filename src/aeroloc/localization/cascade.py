@@ -3,8 +3,9 @@
 The straightforward loop (a learned matcher on every candidate x query rotation) costs ~150 ms+ a pair, so
 re-ranking runs in two stages on features that are extracted once per query and stored per tile:
 
-1. **screen**: mutual nearest neighbours on the stored descriptors + homography verification (MAGSAC) gives
-   every visited candidate a verified inlier count in ~15 ms. Query rotations (multiples of 90°, for photos
+1. **screen**: mutual nearest neighbours on the stored descriptors + a RANSAC similarity (the nadir model,
+   2-point samples; ``screen_geometry``) gives every visited candidate a verified inlier count in ~9 ms (a MAGSAC
+   homography, as before 2026-12-05: ~14 ms, most of it 10,000 iterations on wrong pairs). Query rotations (multiples of 90°, for photos
    taken at any heading) are tried lazily: the first ``rotation_probe`` candidates at the upright rotation,
    the next rotation only while none reached ``min_screen`` inliers, later candidates at the heading found;
    each rotation's features are extracted on first use, so an upright photo costs one
@@ -247,13 +248,16 @@ class Reranker:
         return int(inliers.sum()), H, len(matches), vis
 
     def screen_pair(self, qf, tf):
-        """The screen: mutual nearest neighbours + RANSAC homography (its inliers are what the thresholds count);
-        with ``screen_fit`` "similarity" the transform kept is the similarity refitted on those inliers
+        """The screen: mutual nearest neighbours + RANSAC of ``screen_geometry`` (its inliers are what the thresholds
+        count); with ``screen_fit`` "similarity" the transform kept is the similarity refitted on those inliers
         (aeroloc.matching.verify.similarity_on_inliers), what a screen-only fix is placed with."""
         from aeroloc.matching.verify import similarity_on_inliers
 
         n, H, n_matches, vis = self._verify(
-            qf, tf, mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"])
+            qf,
+            tf,
+            mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]),
+            self.conf["screen_geometry"],
         )
         if H is not None and vis is not None and n >= 2 and self.conf["screen_fit"] == "similarity":
             k0, k1, inliers = vis

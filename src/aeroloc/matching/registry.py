@@ -44,10 +44,15 @@ CASCADE_DEFAULTS = {
     # with the heading unknown, also the diagonals (quarter turns + 45°), ordered per tile by the dominant
     # orientations of query and tile (aeroloc.matching.orientation)
     "diagonals": True,
-    "screen": True,  # stage 1 (MNN + MAGSAC on all visited candidates); False = matcher on every pair
+    "screen": True,  # stage 1 (MNN + RANSAC on all visited candidates); False = matcher on every pair
     "screen_min_sim": 0.7,  # cosine threshold of the screen's mutual nearest neighbours
-    # the transform a screen keeps: "similarity" refitted on the homography's inliers (places screen-only fixes
-    # better, see aeroloc.matching.verify.similarity_on_inliers) or None (the homography itself)
+    # the model whose RANSAC inliers a screen counts: "similarity" (the 4-DOF nadir model, 2-point samples) or
+    # "homography" (MAGSAC, a similarity refitted when the homography is insane, as before 2026-12-05). 95 % of
+    # screens are wrong pairs whose homography is insane and were refitted as a similarity anyway; the homography's
+    # 10,000 MAGSAC iterations on them were 5.4 of a screen's 14 ms (aeroloc.localization.cascade)
+    "screen_geometry": "similarity",
+    # the transform a screen keeps: "similarity" refitted on the RANSAC inliers by least median of squares (places
+    # screen-only fixes better, see aeroloc.matching.verify.similarity_on_inliers) or None (RANSAC's own)
     "screen_fit": "similarity",
     "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)
     "after_exit": 6,  # unvisited candidates still screened after the early exit (a repeated place may rival it)
@@ -58,7 +63,7 @@ CASCADE_DEFAULTS = {
     "confident_inliers": 80,  # ... unless the matcher found this many (wrong tiles reached 41 on Toledo, 20 on NAIP)
     "ransac_px": 4.0,  # RANSAC threshold in working-resolution pixels
     # model fitted to the matcher's matches: "homography" (MAGSAC; a similarity when the homography is insane)
-    # or "similarity" (the nadir model, see verify.verify_similarity); the screen always fits a homography
+    # or "similarity" (the nadir model, see verify.verify_similarity); the screen's is ``screen_geometry``
     "geometry": "homography",
     # a best candidate with at least this many (but < min_inliers) inliers is re-matched against the map window
     # its hypothesis covers (aeroloc.localization.window); None: off
@@ -157,6 +162,9 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
             continue
         what = f"None or an integer >= {low}" if none_ok else f"an integer >= {low}"
         raise AerolocError(f"re-ranker option {key} must be {what}, got {v!r}")
+    for key, choices in CHOICE_OPTIONS:
+        if conf[key] not in choices:
+            raise AerolocError(f"re-ranker option {key} must be one of {', '.join(choices)}, got {conf[key]!r}")
     return conf
 
 
@@ -167,6 +175,8 @@ INTEGER_OPTIONS = (
     ("weak_screen_turns", 0, False),
     ("weak_screen_min", 0, False),
 )
+# (option, its values): a model name misspelt would otherwise fall through to the homography
+CHOICE_OPTIONS = (("geometry", ("homography", "similarity")), ("screen_geometry", ("homography", "similarity")))
 
 
 def feature_overrides(conf: dict) -> dict:

@@ -239,6 +239,32 @@ def test_retriever_shrinks_queries_larger_than_a_tile(db):
         Retriever(db, "xfeat-vlad", "cpu", query_scale=0)
 
 
+def test_every_probe_candidate_is_screened_at_the_turn_where_one_exits_early():
+    """An early exit at a turn screens the probe's other candidates at that turn too. The screens after an exit
+    take only unvisited candidates, so a probe candidate screened at an earlier turn and skipped at the exit's
+    turn kept its weak count (szada_any_0_05: a field the map shows twice exited at 40 inliers at rank 1, the
+    true tile at rank 2 kept 11 from the upright turn though it screens 82 at the exit's)."""
+    from aeroloc.localization.cascade import Screens
+    from aeroloc.matching.registry import rerank_conf
+
+    rr = Reranker.__new__(Reranker)
+    rr.conf = rerank_conf("xfeat-lighterglue")
+    counts = {("a", 1): 5, ("b", 1): 5, ("c", 1): 5, ("a", 0): 8, ("b", 0): 40, ("c", 0): 82, ("d", 0): 3}
+    asked = []
+
+    def screen_pair(k, tile):
+        asked.append((tile, k))
+        return counts.get((tile, k), 0), np.eye(3), 10, None
+
+    cands = [Candidate(t, i) for i, t in enumerate("abcd")]
+    tfs = {t: t for t in "abcd"}
+    n = rr._screen(cands, [1, 0], Screens(screen_pair, lambda k: k, tfs, None), None)
+    assert n == len(asked) and ("c", 0) in asked
+    by_id = {c.tile_id: c for c in cands}
+    assert by_id["c"].screen == 82 and by_id["c"].rot_k == 0
+    assert by_id["b"].screen == 40 and by_id["d"].screen == 3  # the exit, then the unvisited screened after it
+
+
 @pytest.mark.slow
 def test_screens_computed_ahead_on_a_second_thread_change_no_result(db, query):
     """The screens run ahead of the cascade's order on a second thread (aeroloc.localization.cascade.Screens)

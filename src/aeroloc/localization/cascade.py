@@ -340,7 +340,12 @@ class Reranker:
 
         for k in probe_order() if families else rots:
             screens.ahead((c.tile_id, k) for c in probe)
-            if any(screen(c, k) for c in probe):
+            # every probe candidate at k, even after one exits early there (its screen was started ahead): a
+            # candidate already screened at another turn is not "unvisited" for _after_exit, so a short-circuit
+            # here left the true tile unscreened at the turn that fits it (szada_any_0_05: a doubled field ranked
+            # first exited at 40, the true tile next to it was never screened at that turn, where it scores 82)
+            exits = [screen(c, k) for c in probe]
+            if any(exits):
                 return n + self._after_exit(cands, k, screens)
             if best["score"] >= c_["min_screen"]:
                 break

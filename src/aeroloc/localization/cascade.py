@@ -253,12 +253,14 @@ class Reranker:
         (aeroloc.matching.verify.similarity_on_inliers), what a screen-only fix is placed with."""
         from aeroloc.matching.verify import similarity_on_inliers
 
-        n, H, n_matches, vis = self._verify(
-            qf,
-            tf,
-            mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"]),
-            self.conf["screen_geometry"],
-        )
+        matches = mutual_nn(qf["descriptors"], tf["descriptors"], self.conf["screen_min_sim"])
+        n, H, n_matches, vis = self._verify(qf, tf, matches, self.conf["screen_geometry"])
+        also = self.conf["screen_homography_min"]
+        if self.conf["screen_geometry"] == "similarity" and also is not None and n >= also:
+            # a strong pair of a tilted photo: its homography may hold more inliers (counts the thresholds know)
+            more = self._verify(qf, tf, matches, "homography")
+            if more[0] > n:
+                n, H, n_matches, vis = more
         if H is not None and vis is not None and n >= 2 and self.conf["screen_fit"] == "similarity":
             k0, k1, inliers = vis
             refit = similarity_on_inliers(k0[inliers], k1[inliers])

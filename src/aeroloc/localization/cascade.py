@@ -5,9 +5,10 @@ re-ranking runs in two stages on features that are extracted once per query and 
 
 1. **screen**: mutual nearest neighbours on the stored descriptors + a RANSAC similarity (the nadir model,
    2-point samples; ``screen_geometry``) gives every visited candidate a verified inlier count in ~9 ms (a MAGSAC
-   homography, as before 2026-12-05: ~14 ms, most of it 10,000 iterations on wrong pairs). Query rotations (multiples of 90°, for photos
-   taken at any heading) are tried lazily: the first ``rotation_probe`` candidates at the upright rotation,
-   the next rotation only while none reached ``min_screen`` inliers, later candidates at the heading found;
+   homography, as before 2026-12-05: ~14 ms, most of it 10,000 iterations on wrong pairs). Query rotations
+   (multiples of 90°, for photos taken at any heading) are tried lazily: the first ``rotation_probe`` candidates
+   at the upright rotation, the next rotation only while none reached ``min_screen`` inliers, later candidates at
+   the heading found;
    each rotation's features are extracted on first use, so an upright photo costs one
    extraction. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
    bridge only ~20-40° of rotation: on the probe always, on later candidates where the dominant orientations of

@@ -180,8 +180,9 @@ INTEGER_OPTIONS = (
     ("weak_screen_min", 0, False),
     ("screen_homography_min", 0, True),
 )
+GEOMETRIES = ("homography", "similarity")  # the models aeroloc.localization.cascade.Reranker._verify fits
 # (option, its values): a model name misspelt would otherwise fall through to the homography
-CHOICE_OPTIONS = (("geometry", ("homography", "similarity")), ("screen_geometry", ("homography", "similarity")))
+CHOICE_OPTIONS = (("geometry", GEOMETRIES), ("screen_geometry", GEOMETRIES))
 
 
 def feature_overrides(conf: dict) -> dict:

@@ -487,3 +487,35 @@ def test_a_windowed_fix_is_as_sure_as_a_map_pixel(tracked):
     assert not tracker.filter.update(21.0, 0.0, tracker._fix_sigma(0.35))[0]
     tracker.gsd = 0.5  # never below fix_sigma_min_m (2 m: what two dates of imagery agree to)
     assert tracker._fix_sigma(0.4) == pytest.approx(2.0)
+
+
+def test_three_frames_agreeing_distinctly_together_relocalize_four_agreeing_barely_do_too(tracked):
+    """A lost track's best peaks, not distinct alone, fix the track when the best peaks of several searched frames
+    in a row agree: four frames in a row whatever their ratios, three when their ratios multiplied reach the
+    distinctness asked of one frame (levir-tx flight without metadata after its outage: 1.38, 1.10, 1.32 on the
+    truth, found one frame sooner), never three barely distinct ones (the NAIP flight's three frames agreeing on
+    a place 590 m off had ratios of 1.01-1.05)."""
+    from aeroloc.flight.calibration import Pose
+    from aeroloc.flight.tracker import Tracker
+
+    _, _, localizer, _ = tracked
+    tracker = Tracker(localizer)
+    cfg = tracker.cfg
+    at = Pose(400.0, 300.0, 30.0, 0.4)
+    assert cfg.vote_frames_min < cfg.vote_frames
+    assert 1.38 * 1.10 * 1.32 >= cfg.near_ratio > 1.05**3
+
+    def votes(ratios, moved=0.0):
+        tracker.candidates.clear()
+        out = [tracker._vote(Pose(at.x + moved * k, at.y, at.turn_deg, at.scale), 0.3, r) for k, r in enumerate(ratios)]
+        return out
+
+    assert votes([1.38, 1.10, 1.32]) == [0, 0, cfg.vote_frames_min]
+    assert votes([1.05, 1.03, 1.01]) == [0, 0, 0]
+    assert votes([1.05, 1.03, 1.01, 1.02]) == [0, 0, 0, cfg.vote_frames]
+    far = max(cfg.vote_m, 3 * tracker.gsd) / tracker.gsd + 1.0  # peaks a vote's tolerance apart do not agree
+    assert votes([1.38, 1.10, 1.32], moved=far) == [0, 0, 0]
+    tracker.candidates.clear()
+    assert tracker._vote(at, cfg.vote_score - 0.01, 2.0) == 0  # a weak peak breaks the row
+    assert [tracker._vote(at, 0.3, r) for r in (1.38, 1.10)] == [0, 0]  # two after it: not yet three
+    assert tracker._vote(at, 0.3, 1.32) == cfg.vote_frames_min

@@ -74,6 +74,9 @@ class TrackConfig:
     # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
     vote_frames: int = 4  # ... or the best peak, not distinct, when the best peaks of this many frames in a row
     # (each scoring >= vote_score), carried on by the odometry, agree
+    vote_frames_min: int = 3  # ... or of this many, when their ratios multiplied reach near_ratio (distinct
+    # together: levir-tx flight without metadata after its outage, ratios 1.38, 1.10, 1.32 on the truth; the NAIP
+    # flight's wrong agreement above had 1.01-1.05 each)
     vote_score: float = 0.3  # ... each scoring at least this
     vote_m: float = 15.0  # ... within max(this, 3 map px)
     vote_turn_deg: float = 6.0  # ... and this turn
@@ -137,6 +140,11 @@ class TrackPoint:
         )
 
 
+def _turn(d: float) -> float:
+    """A difference of turns in (-180, 180]."""
+    return (d + 180.0) % 360.0 - 180.0
+
+
 def release_native_memory() -> None:
     """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``; elsewhere nothing): the
     whole-map searches of a lost track allocate and free large native arrays (FFT spectra, model buffers), and
@@ -187,7 +195,7 @@ class Tracker:
         # odometry step, a coasted step, a fix); frames not tracked since (a lost track) add their time too
         self.unseen_turn_s = 0.0  # seconds coasted (no odometry step) since a fix last measured the heading: the
         # odometry measures turns relative to the pose, so a turn made while blind stays in the heading until a fix
-        self.candidates: list[tuple[Pose, float, int]] = []  # recent searched frames' best peaks (carried on by
+        self.candidates: list[tuple[Pose, float, int, float]] = []  # recent searched frames' best peaks (carried on by
         # the odometry), their scores and ages in frames
         self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
         # and the pose's turn then
@@ -525,7 +533,7 @@ class Tracker:
                 10.0, 2 * self.gsd
             )
             fix, where = (inner, f", distinct within {reach_m * self.cfg.near_inner:.0f} m") if same else (None, "")
-            agree = self._vote(Pose(best.x, best.y, best.turn_deg, scale), best.score)
+            agree = self._vote(Pose(best.x, best.y, best.turn_deg, scale), best.score, best.ratio)
             if fix is None and agree:
                 fix, where = best, f", the best peak of {agree} frames in a row"
         if fix is None:
@@ -538,26 +546,30 @@ class Tracker:
             scale *= (fix.scale / pose.scale) ** self.cfg.near_scale_k
         return Pose(fix.x, fix.y, fix.turn_deg, scale), status
 
-    def _vote(self, pose: Pose, score: float) -> int:
+    def _vote(self, pose: Pose, score: float, ratio: float = 1.0) -> int:
         """Record a searched frame's best but not distinct peak; ``vote_frames`` when the best peaks of that many
         searched frames in a row (this one the last), carried to this frame by the odometry, each scoring at least
         ``vote_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
         and it can move with the frames: NAIP, after a 15 s outage in a turn, the best peaks of frames 1, 2 and 4
         after it agreed on a place 590 m off (ratios 1.01-1.05), those of 3, 5, 6, 7 and 8 on the truth (5-11 m
         off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one."""
-        self.candidates.append((pose, score, 0))
+        self.candidates.append((pose, score, 0, ratio))
         tol = max(self.cfg.vote_m, 3 * self.gsd) / self.gsd
-        recent = self.candidates[-self.cfg.vote_frames :]
-        agree = len(recent) == self.cfg.vote_frames and all(
-            sc >= self.cfg.vote_score
-            and math.hypot(c.x - pose.x, c.y - pose.y) <= tol
-            and abs((c.turn_deg - pose.turn_deg + 180.0) % 360.0 - 180.0) <= self.cfg.vote_turn_deg
-            for c, sc, _ in recent
-        )
-        if agree:
+        agreeing = 0  # the frames in a row, this one the last, whose best peaks agree with this one's
+        for c, sc, _, _ in reversed(self.candidates):
+            near = math.hypot(c.x - pose.x, c.y - pose.y) <= tol
+            if not (
+                sc >= self.cfg.vote_score and near and abs(_turn(c.turn_deg - pose.turn_deg)) <= self.cfg.vote_turn_deg
+            ):
+                break
+            agreeing += 1
+        together = math.prod(r for *_, r in self.candidates[-self.cfg.vote_frames_min :])
+        n = self.cfg.vote_frames if agreeing >= self.cfg.vote_frames else 0
+        if not n and agreeing >= self.cfg.vote_frames_min and together >= self.cfg.near_ratio:
+            n = self.cfg.vote_frames_min
+        if n:
             self.candidates.clear()
-            return self.cfg.vote_frames
-        return 0
+        return n
 
     def _carry_candidates(self, step, size) -> None:
         """The recent frames' best peaks moved on with this frame's odometry step (dropped without one, or once
@@ -568,7 +580,9 @@ class Tracker:
             self.candidates.clear()
             return
         self.candidates = [
-            (c.moved(step.A, size), sc, age + 1) for c, sc, age in self.candidates if age + 1 < self.cfg.vote_frames
+            (c.moved(step.A, size), sc, age + 1, r)
+            for c, sc, age, r in self.candidates
+            if age + 1 < self.cfg.vote_frames
         ]
 
     def _dense_global(self, image, priors: Priors) -> tuple[Pose | None, str]:

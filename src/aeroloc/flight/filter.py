@@ -51,6 +51,8 @@ class FilterConfig:
     coast_max_m: float = 600.0  # blank frames coast on up to this uncertainty (a position with an honest sigma;
     # the first frame after them is searched around it), beyond it the track is lost
     max_unfixed_s: float = 20.0  # ... or at least 2 failed and no fix for this long (photos seconds apart)
+    compass_speed_share: float = 0.2  # coasting on a compass's turns: the ground speed may change this much (wind,
+    # throttle); the heading by the compass's tolerance
 
 
 @dataclass
@@ -117,15 +119,27 @@ class PositionFilter:
             e.vx, e.vy = 0.5 * ox + 0.5 * nx, 0.5 * oy + 0.5 * ny
             e.turn_dps = 0.5 * e.turn_dps - 0.5 * turn_deg / dt
 
-    def predict_coast(self, dt: float) -> None:
+    def predict_coast(self, dt: float, turn_deg: float | None = None, turn_tol_deg: float = 0.0) -> None:
+        """Carry the estimate on for ``dt`` seconds without an image step: along the last velocity turned at the
+        last turn rate, the uncertainty growing at ``coast_share`` of the speed bound. ``turn_deg``: the turn a
+        compass measured over the step instead (the content's turn, the project's convention), good to
+        ``turn_tol_deg``: the velocity follows it, and the uncertainty grows only with what the compass leaves
+        open, a heading off by its tolerance and the speed changing by ``compass_speed_share`` (never faster than
+        without it)."""
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
+        if turn_deg is not None and dt > 0:
+            e.turn_dps = -turn_deg / dt
         a = math.radians(e.turn_dps * dt)
         cx, cy = _turned(e.vx, e.vy, a / 2)  # along the arc: the chord is the velocity turned by half the arc
         chord = math.sin(a / 2) / (a / 2) if abs(a) > 1e-9 else 1.0
         e.x, e.y = e.x + cx * dt * chord, e.y + cy * dt * chord
+        speed = math.hypot(e.vx, e.vy)
         e.vx, e.vy = _turned(e.vx, e.vy, a)
-        e.sigma += c.coast_share * c.speed_max_mps * dt  # linear: an unseen turn is a drift, not a random walk
+        rate = c.coast_share * c.speed_max_mps  # linear: an unseen turn is a drift, not a random walk
+        if turn_deg is not None:
+            rate = min(rate, (math.sin(math.radians(min(turn_tol_deg, 90.0))) + c.compass_speed_share) * speed)
+        e.sigma += rate * dt
 
     def gate(self, sigma_fix: float) -> float:
         """The largest distance (metres) from the prediction a fix may lie at."""

@@ -197,6 +197,8 @@ class Tracker:
         # odometry measures turns relative to the pose, so a turn made while blind stays in the heading until a fix
         self.candidates: list[tuple[Pose, float, int, float]] = []  # recent searched frames' best peaks (carried on by
         # the odometry), their scores and ages in frames
+        self._compass_last: float | None = None  # the previous frame's compass heading (telemetry)
+        self.compass_step: float | None = None  # the turn it measured to this frame
         self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
         # and the pose's turn then
         self.anchored = False  # whether the position is tied to a map fix by odometry alone since: a coasted step
@@ -237,6 +239,7 @@ class Tracker:
         t0 = time.perf_counter()
         dt = 0.0 if self.prev_time is None else ref.time - self.prev_time
         self.prev_time = ref.time
+        self.compass_step = self._compass_turn(ref)
         blank = image is None or float(image[::4, ::4].std()) < self.cfg.blank_std
         step = None if blank else self.odo(image)
         if blank:
@@ -267,11 +270,17 @@ class Tracker:
             if moved:
                 self.baseline.moved(self.filter.est.x - before[0], self.filter.est.y - before[1])
                 self.turn_time = ref.time
+        compass = self.compass_step
         if not moved:  # the velocity turns on at the last turn rate, the heading is kept (a drone's camera need not
-            # point where it flies: Toledo photos turned with the coasted velocity missed the ±4° window)
-            self.filter.predict_coast(dt)
+            # point where it flies: Toledo photos turned with the coasted velocity missed the ±4° window); with a
+            # compass in the telemetry both follow the turn it measured (dead reckoning through black frames)
+            if compass is None:
+                self.filter.predict_coast(dt)
+                self.unseen_turn_s += max(0.0, dt)
+            else:
+                self.filter.predict_coast(dt, compass, ref.priors.heading_tol_deg)
+                self.pose = replace(self.pose, turn_deg=self.pose.turn_deg + compass)
             self.baseline.broken()
-            self.unseen_turn_s += max(0.0, dt)
             self.turn_time = ref.time  # this step's time is in unseen_turn_s now
             self.anchored = False
         e = self.filter.est
@@ -299,6 +308,17 @@ class Tracker:
                 return self._relocalize(ref, image, f"track lost ({reason}); ", searched)
             return self._point(ref, "lost", f"track lost ({reason})")
         return self._point(ref, source, reason or ("odometry" if moved else "coasting"))
+
+    def _compass_turn(self, ref: FrameRef) -> float | None:
+        """The turn (degrees, the content's, the project's convention) the telemetry's compass measured since the
+        previous frame, None without a compass reading on both. A compass errs by up to its tolerance, but its
+        error wanders slowly, so its turns over seconds are what dead reckoning needs."""
+        now = ref.priors.heading_deg
+        prev = self._compass_last
+        self._compass_last = now
+        if now is None or prev is None:
+            return None
+        return (now - prev + 180.0) % 360.0 - 180.0
 
     def _own_gsd(self, ref: FrameRef, size) -> float | None:
         """The frame's ground resolution from its own metadata (a telemetry height and the lens: known only once

@@ -164,6 +164,46 @@ def test_a_screen_fits_the_nadir_similarity_without_magsac_and_ranks_as_the_homo
     assert max(by[t][0] for by in (by_s, by_h) for t in far) < reranker.conf["min_screen"]
 
 
+def test_a_strong_similarity_screen_is_topped_up_by_the_homography_and_a_weak_one_is_not(
+    db, reranker, query, monkeypatch
+):
+    """A similarity screen of at least ``screen_homography_min`` inliers also fits the homography and keeps the
+    larger count (tilted photos hold more inliers under a homography); a weaker one fits no homography; an insane
+    homography in the top-up counts nothing rather than refitting the similarity the screen already has."""
+    from aeroloc.matching import verify
+    from aeroloc.matching.features import extract
+
+    _, image = query
+    tile_ids = Retriever(db, "xfeat-vlad", "cpu")(image, 10).tile_ids
+    tfs = reranker.tile_features(tile_ids)
+    qf = extract(reranker.extractor, image, reranker.conf["query_side"], 0)
+    least = reranker.conf["screen_homography_min"]
+    sim_only = Reranker(db, "xfeat-lighterglue", "cpu", {"screen_homography_min": None})
+    hom_only = Reranker(db, "xfeat-lighterglue", "cpu", {"screen_geometry": "homography"})
+    sims = {t: sim_only.screen_pair(qf, tfs[t])[0] for t in tile_ids}
+    strong = [t for t in tile_ids if sims[t] >= least]
+    weak = [t for t in tile_ids if sims[t] < least]
+    assert strong and weak, sims
+    for t in strong:  # RANSAC and MAGSAC are seeded alike on every call: the counts are reproducible
+        assert reranker.screen_pair(qf, tfs[t])[0] == max(sims[t], hom_only.screen_pair(qf, tfs[t])[0])
+    calls = {"homography": 0, "similarity": 0}
+    for name in calls:
+        real = getattr(verify, f"verify_{name}")
+
+        def counted(*a, _real=real, _name=name, **k):
+            calls[_name] += 1
+            return _real(*a, **k)
+
+        monkeypatch.setattr(verify, f"verify_{name}", counted)
+    for t in weak:
+        assert reranker.screen_pair(qf, tfs[t])[0] == sims[t]
+    assert calls["homography"] == 0
+    monkeypatch.setattr(verify, "homography_is_sane", lambda *a, **k: (False, "made insane"))
+    calls.update(homography=0, similarity=0)
+    assert reranker.screen_pair(qf, tfs[strong[0]])[0] == sims[strong[0]]
+    assert calls == {"homography": 1, "similarity": 1}
+
+
 def test_diagonal_features_map_back_to_the_original_frame(reranker, query):
     """Keypoints extracted on the query turned by each diagonal, mapped back by to_original, meet the same
     query's upright keypoints: a similarity fitted between them is the identity, its shift within 2 px as for the

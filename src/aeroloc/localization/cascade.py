@@ -229,7 +229,10 @@ class Reranker:
             )
         return None
 
-    def _verify(self, qf: dict, tf: dict, matches: np.ndarray, geometry: str = "homography"):
+    def _verify(self, qf: dict, tf: dict, matches: np.ndarray, geometry: str = "homography", fallback: bool = True):
+        """(inliers, transform, matches, (query kpts, tile kpts, inlier mask)) of ``geometry``; an insane homography
+        is replaced by the similarity refitted on the same matches, or, without ``fallback`` (the caller has
+        that similarity already), counts nothing."""
         from aeroloc.matching.verify import homography_is_sane, verify_homography, verify_similarity
 
         if len(matches) < 4:
@@ -241,6 +244,8 @@ class Reranker:
         else:
             v = verify_homography(k0, k1, matches, threshold_px=thr)
             if v.H is not None and not homography_is_sane(v.H, tuple(int(x) for x in qf["orig_size"]))[0]:
+                if not fallback:
+                    return 0, None, len(matches), None
                 # nadir imagery: a full homography fitted on clustered inliers can extrapolate wildly; refit the
                 # better-conditioned similarity model (rotation, scale, shift) and count its own inliers
                 v = verify_similarity(k0, k1, matches, threshold_px=thr)
@@ -259,7 +264,7 @@ class Reranker:
         also = self.conf["screen_homography_min"]
         if self.conf["screen_geometry"] == "similarity" and also is not None and n >= also:
             # a strong pair of a tilted photo: its homography may hold more inliers (counts the thresholds know)
-            more = self._verify(qf, tf, matches, "homography")
+            more = self._verify(qf, tf, matches, "homography", fallback=False)  # insane: the similarity stands
             if more[0] > n:
                 n, H, n_matches, vis = more
         if H is not None and vis is not None and n >= 2 and self.conf["screen_fit"] == "similarity":

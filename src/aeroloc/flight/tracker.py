@@ -281,7 +281,7 @@ class Tracker:
                 self.filter.predict_coast(dt, compass, ref.priors.heading_tol_deg)
                 self.pose = replace(self.pose, turn_deg=self.pose.turn_deg + compass)
             self.baseline.broken()
-            self.turn_time = ref.time  # this step's time is in unseen_turn_s now
+            self.turn_time = ref.time  # this step's time is in unseen_turn_s now (or its turn was the compass's)
             self.anchored = False
         e = self.filter.est
         scale = own / self.gsd if own is not None else self.pose.scale
@@ -318,7 +318,7 @@ class Tracker:
         self._compass_last = now
         if now is None or prev is None:
             return None
-        return (now - prev + 180.0) % 360.0 - 180.0
+        return _turn(now - prev)
 
     def _own_gsd(self, ref: FrameRef, size) -> float | None:
         """The frame's ground resolution from its own metadata (a telemetry height and the lens: known only once
@@ -572,7 +572,9 @@ class Tracker:
         ``vote_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
         and it can move with the frames: NAIP, after a 15 s outage in a turn, the best peaks of frames 1, 2 and 4
         after it agreed on a place 590 m off (ratios 1.01-1.05), those of 3, 5, 6, 7 and 8 on the truth (5-11 m
-        off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one."""
+        off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one. ``vote_frames_min`` agreeing
+        are enough when their ``ratio``s multiplied reach ``near_ratio``: distinct together, as one frame must be
+        alone (levir-tx without metadata after its outage: 1.38, 1.10, 1.32 on the truth)."""
         self.candidates.append((pose, score, 0, ratio))
         tol = max(self.cfg.vote_m, 3 * self.gsd) / self.gsd
         agreeing = 0  # the frames in a row, this one the last, whose best peaks agree with this one's

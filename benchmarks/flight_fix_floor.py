@@ -18,12 +18,12 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import re
 import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
+from flights import slug  # benchmarks/flights.py, beside this script
 
 from aeroloc.core import geo
 from aeroloc.core.images import read_image
@@ -40,7 +40,7 @@ SEARCHES = {  # name -> (turns around the true one, scales around the true one);
 
 
 def floor(flight: dict, out: Path, every: int, pipeline: bool) -> dict | None:
-    folder = out / re.sub(r"[^a-z0-9]+", "-", flight["name"].lower()).strip("-")  # benchmarks/flights.py's
+    folder = out / slug(flight["name"])  # where benchmarks/flights.py wrote the flight
     if not (folder / "truth.csv").is_file():
         print(f"{flight['name']}: {folder}/truth.csv missing (run benchmarks/flights.py first)", file=sys.stderr)
         return None

@@ -88,11 +88,16 @@ def pose_from_dense(d, map_gsd: float) -> Pose:
     return Pose(d.col, d.row, float(d.match.angle), d.query_gsd * d.match.scale / map_gsd)
 
 
+def turn_difference(d: float) -> float:
+    """A difference of turns (degrees) in [-180, 180)."""
+    return (d + 180.0) % 360.0 - 180.0
+
+
 def blend(pose: Pose, x: float, y: float, turn: float | None, scale: float | None, k: float = 0.3) -> Pose:
     """``pose`` moved to (x, y), its turn and scale moved ``k`` of the way to a fix's."""
     t, s = pose.turn_deg, pose.scale
     if turn is not None:
-        t += k * ((turn - t + 180.0) % 360.0 - 180.0)
+        t += k * turn_difference(turn - t)
     if scale is not None:
         s *= (scale / s) ** k
     return Pose(x, y, t, s)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from aeroloc.core.priors import Priors
-from aeroloc.flight.calibration import BaselineScale, Pose, pose_from_dense, pose_from_homography
+from aeroloc.flight.calibration import BaselineScale, Pose, pose_from_dense, pose_from_homography, turn_difference
 from aeroloc.flight.filter import Estimate, FilterConfig, PositionFilter, _turned
 from aeroloc.flight.frames import FrameRef
 from aeroloc.flight.odometry import Odometry
@@ -140,11 +140,6 @@ class TrackPoint:
         )
 
 
-def _turn(d: float) -> float:
-    """A difference of turns in (-180, 180]."""
-    return (d + 180.0) % 360.0 - 180.0
-
-
 def release_native_memory() -> None:
     """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``; elsewhere nothing): the
     whole-map searches of a lost track allocate and free large native arrays (FFT spectra, model buffers), and
@@ -262,7 +257,7 @@ class Tracker:
         if step is not None:
             new = self.pose.moved(step.A, size)
             before = (self.filter.est.x, self.filter.est.y)
-            turn = (new.turn_deg - self.pose.turn_deg + 180.0) % 360.0 - 180.0
+            turn = turn_difference(new.turn_deg - self.pose.turn_deg)
             dx, dy = (new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd
             self.filter.predict_odometry(dx, dy, dt, turn, self.metric or self.baseline.checked)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
@@ -318,7 +313,7 @@ class Tracker:
         self._compass_last = now
         if now is None or prev is None:
             return None
-        return _turn(now - prev)
+        return turn_difference(now - prev)
 
     def _own_gsd(self, ref: FrameRef, size) -> float | None:
         """The frame's ground resolution from its own metadata (a telemetry height and the lens: known only once
@@ -341,7 +336,7 @@ class Tracker:
         if pose is None:
             self.filter.misses += 1
             return status.replace("the prediction", "the estimate"), False
-        v = _turned(e.vx, e.vy, -math.radians((pose.turn_deg - self.pose.turn_deg + 180.0) % 360.0 - 180.0))
+        v = _turned(e.vx, e.vy, -math.radians(turn_difference(pose.turn_deg - self.pose.turn_deg)))
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         self.filter.est.vx, self.filter.est.vy = v
         self.pose = self.calibration = pose
@@ -581,7 +576,9 @@ class Tracker:
         for c, sc, _, _ in reversed(self.candidates):
             near = math.hypot(c.x - pose.x, c.y - pose.y) <= tol
             if not (
-                sc >= self.cfg.vote_score and near and abs(_turn(c.turn_deg - pose.turn_deg)) <= self.cfg.vote_turn_deg
+                sc >= self.cfg.vote_score
+                and near
+                and abs(turn_difference(c.turn_deg - pose.turn_deg)) <= self.cfg.vote_turn_deg
             ):
                 break
             agreeing += 1

@@ -299,7 +299,7 @@ def test_every_probe_candidate_is_screened_at_the_turn_where_one_exits_early():
 
     cands = [Candidate(t, i) for i, t in enumerate("abcd")]
     tfs = {t: t for t in "abcd"}
-    n = rr._screen(cands, [1, 0], Screens(screen_pair, lambda k: k, tfs, None), None)
+    n = rr._screen(cands, [1, 0], Screens(screen_pair, lambda t, k: (k, tfs[t]), None), None)
     assert n == len(asked) and ("c", 0) in asked
     by_id = {c.tile_id: c for c in cands}
     assert by_id["c"].screen == 82 and by_id["c"].rot_k == 0
@@ -345,13 +345,17 @@ def test_a_screen_started_ahead_and_not_asked_for_is_dropped():
         return (qf * 10 + tf, None, 0, None)
 
     with ThreadPoolExecutor(2) as pool:
-        s = Screens(screen_pair, lambda k: k, {"a": 1, "b": 2, "c": 3}, pool)
+        tfs = {"a": 1, "b": 2, "c": 3}
+        s = Screens(screen_pair, lambda t, k: (k, tfs[t]), pool, lambda t, k: k == 0)
         s.ahead([("a", 0), ("b", 0), ("c", 5)])
         assert s("b", 0)[0] == 2 and s("a", 0)[0] == 1 and s("a", 1)[0] == 11  # the last one on demand
         s.close()
         assert not s._ahead and len(calls) <= 4
         assert s("c", 5)[0] == 53  # dropped: computed again when asked for after all
-    assert Screens(screen_pair, lambda k: k, {"a": 1}, None)("a", 2)[0] == 21
+        s.ahead([("b", 0), ("c", 7)], guess=True)  # a guess starts only the cheap pairs
+        assert set(s._ahead) == {("b", 0)}
+        s.close()
+    assert Screens(screen_pair, lambda t, k: (k, 1), None)("a", 2)[0] == 21
 
 
 def test_tile_features_kept_decoded_are_the_stored_ones_and_bounded(db):

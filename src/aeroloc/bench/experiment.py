@@ -25,7 +25,8 @@ file*: the nearest folder, starting at the YAML's own folder and going up, that 
 
 ``limit: n`` on a query set keeps an evenly spaced subset of n queries (:func:`sample_queries`, applied by the
 pipeline), so slow re-rankers fit a time budget while every part of the set (dates, cameras) stays represented.
-``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
+``local_turns: true`` on a map builds its tiles' local features at eight turns too (``aeroloc build --local-turns``):
+photos of unknown heading are then extracted once. ``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
 ``query_gsd: 5`` gives the images' ground resolution in metres per pixel (``aeroloc localize --query-gsd 5``): the
 dense structural stage is tried before the re-ranker. Both apply to configurations with a re-ranker only.
 ``priors: none | rough | exact`` (default ``auto``: what the file says, see aeroloc.core.priors) sets what the
@@ -78,6 +79,7 @@ class MapSpec:
     name: str
     path: Path
     tile_m: float | None = None
+    local_turns: bool = False  # aeroloc build --local-turns: the tiles' local features at eight turns
 
 
 @dataclass(frozen=True)
@@ -141,6 +143,7 @@ class Config:
     query_gsd: float | None = None  # localize_queries(query_gsd=...)
     priors: str = "auto"  # load_queries(priors=...)
     seed: int = 0
+    local_turns: bool = False  # the database holds turned tiles (aeroloc.matching.features.build_local)
 
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
@@ -164,6 +167,8 @@ class Config:
             parts.append({"max_queries": int(self.max_queries)})
         if self.north_up:  # likewise only when set
             parts.append({"north_up": True})
+        if self.local_turns:  # likewise
+            parts.append({"local_turns": True})
         if self.priors != "auto":  # likewise
             parts.append({"priors": self.priors, "seed": int(self.seed)})
         if self.query_gsd is not None:
@@ -194,6 +199,8 @@ class Config:
             parts.append(f"K={self.top_k}")
         if self.north_up:
             parts.append("north-up")
+        if self.local_turns:
+            parts.append("turned tiles")
         if self.query_gsd is not None:
             parts.append(f"dense @ {self.query_gsd:g} m/px")
         if self.priors != "auto":
@@ -294,14 +301,16 @@ class _Validator:
         out = []
         for i, m in enumerate(self.entries("maps")):
             where = f"maps[{i}]"
-            self.only_keys(where, m, {"name", "path", "tile_m"})
+            self.only_keys(where, m, {"name", "path", "tile_m", "local_turns"})
             name = self.text(f"{where}.name", m.get("name"))
             tile_m = m.get("tile_m")
             if tile_m is not None and (not _is_number(tile_m) or not tile_m > 0):
                 self.fail(f"{where}.tile_m", f"must be a positive number of metres (or left out), got {tile_m!r}")
-            out.append(
-                MapSpec(name, self.resolve(f"{where}.path", m.get("path")), None if tile_m is None else float(tile_m))
-            )
+            turns = m.get("local_turns", False)
+            if not isinstance(turns, bool):
+                self.fail(f"{where}.local_turns", f"expected true or false, got {turns!r}")
+            path = self.resolve(f"{where}.path", m.get("path"))
+            out.append(MapSpec(name, path, None if tile_m is None else float(tile_m), turns))
         self.unique("maps", [m.name for m in out])
         return out
 
@@ -486,6 +495,7 @@ def expand(exp: Experiment) -> list[Config]:
                     map_name=m.name,
                     map_path=str(m.path),
                     tile_m=m.tile_m,
+                    local_turns=m.local_turns and bool(reranker),  # retrieval alone reads no local features
                     queries_name=q.name,
                     queries_path=str(q.path),
                     method=method,

@@ -112,7 +112,8 @@ def _build(cfg, folder: Path, device, progress: bool):
         from aeroloc.retrieval.echoes import build_echoes
 
         build_echoes(db, cfg.method)
-    lrep = build_local(db, cfg.reranker, device, progress=progress) if cfg.reranker else None
+    turns = getattr(cfg, "local_turns", False)
+    lrep = build_local(db, cfg.reranker, device, progress=progress, turns=turns) if cfg.reranker else None
     timing = {"tiles_s": t_tiles, "build_descriptors_s": grep.extract_s, "fit_s": grep.fit_s}
     memory = {
         "descriptor_bytes_per_tile": grep.bytes_per_tile,

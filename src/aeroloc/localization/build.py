@@ -20,12 +20,14 @@ def build_database(
     progress: bool = False,
     ray: str | None = None,
     write_images: bool = False,
+    local_turns: bool = False,
 ):
     """The database of ``map_path`` (GeoTIFF, tile folder or XYZ folder) in ``out_dir``: tiles at ``zoom`` /
     ``overlap`` (or ``tile_m`` metres a side), ``method`` descriptors, ``rerank`` features. Every part is cached
     and resumable per shard, so calling it again costs only the checks; ``ray`` (an address, or ``"local"``)
     builds the shards on a Ray cluster with the same result. Tiles stay windows of the map unless
-    ``write_images``. Returns the opened
+    ``write_images``; ``local_turns``: the re-ranker's tile features at eight turns too (photos of unknown heading
+    extracted once; x8 their disk and build time). Returns the opened
     :class:`~aeroloc.retrieval.database.Database`."""
     from aeroloc.core.device import pick_device
     from aeroloc.maps.tiling import write_tiles
@@ -40,5 +42,5 @@ def build_database(
         from aeroloc.retrieval.echoes import build_echoes
 
         build_echoes(db, method)  # ground the map shows twice: fixes there are checked at both places
-        build_local(db, rerank, device, progress=progress, ray=ray)
+        build_local(db, rerank, device, progress=progress, ray=ray, turns=local_turns)
     return db

@@ -10,7 +10,9 @@ re-ranking runs in two stages on features that are extracted once per query and 
    at the upright rotation, the next rotation only while none reached ``min_screen`` inliers, later candidates at
    the heading found;
    each rotation's features are extracted on first use, so an upright photo costs one
-   extraction. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
+   extraction; a database with turned tiles (``aeroloc build --local-turns``) screens the upright photo against
+   each tile turned back instead (:meth:`Reranker._pair`), so its screens cost one extraction whatever the heading
+   (levir-tx/any, no prior: ~8 extractions, ~0.3 s, a query before); the matcher still gets the query turned. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
    bridge only ~20-40° of rotation: on the probe always, on later candidates where the dominant orientations of
    query and tile (aeroloc.matching.orientation) say the query lies nearer a diagonal. Candidates are visited in retrieval order and the screen stops early once one reaches
    ``early_exit`` inliers (the rest keep their retrieval order behind it).
@@ -38,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aeroloc.matching.features import DIAGONAL, extract, to_original, turn_gap
+from aeroloc.matching.features import DIAGONAL, extract, inverse_turn, to_original, turn_gap, turned_name
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
 
@@ -78,6 +80,13 @@ class Reranked:
     ranked: list[Candidate] = field(default_factory=list)  # every candidate, best first (``candidates``: top K)
     features: QueryFeatures | None = None  # the query's features (``query`` is their dict), for later steps
 
+    def query_at(self, k: int) -> dict | None:
+        """The query's features at rotation ``k``, extracted now when the cascade screened turned tiles instead
+        (or None without features)."""
+        if self.features is not None and k < 2 * DIAGONAL:
+            return self.features(k)
+        return self.query.get(k)
+
 
 def _rank(c: Candidate) -> tuple:
     """The cascade's order: matcher-verified candidates by inliers, then screened ones by screen inliers, then the
@@ -99,23 +108,26 @@ class Screens:
     ready; the cascade's own order decides which results are used, so a result computed ahead and not asked for
     is dropped. Without a ``pool`` every screen is computed on demand, in the caller's thread."""
 
-    def __init__(self, screen_pair, features, tfs: dict, pool: ThreadPoolExecutor | None):
-        self._screen_pair, self._features, self._tfs, self._pool = screen_pair, features, tfs, pool
+    def __init__(self, screen_pair, pair, pool: ThreadPoolExecutor | None, cheap=None):
+        self._screen_pair, self._pair, self._pool = screen_pair, pair, pool
+        self._cheap = cheap or (lambda t, k: False)
         self._ahead: dict[tuple[str, int], Future] = {}
 
-    def ahead(self, pairs) -> None:
-        """Start the screens of ``pairs`` ((tile id, rotation)) on the pool; their query features are extracted
-        here first (only pass rotations the cascade extracts anyway)."""
+    def ahead(self, pairs, guess: bool = False) -> None:
+        """Start the screens of ``pairs`` ((tile id, rotation)) on the pool; their features (``pair(tile id,
+        rotation) -> (query features, tile features)``) are got here first. With ``guess`` (screens the cascade
+        may not ask for) only the pairs whose features are ``cheap`` (no query extraction), so a wrong guess
+        costs the second core's time alone."""
         if self._pool is None:
             return
         for t, k in pairs:
-            if (t, k) not in self._ahead:
-                self._ahead[(t, k)] = self._pool.submit(self._screen_pair, self._features(k), self._tfs[t])
+            if (t, k) not in self._ahead and (not guess or self._cheap(t, k)):
+                self._ahead[(t, k)] = self._pool.submit(self._screen_pair, *self._pair(t, k))
 
     def __call__(self, tile_id: str, k: int):
         """The screen of ``tile_id`` at rotation ``k``: (inliers, H, matches, visualisation)."""
         f = self._ahead.pop((tile_id, k), None)
-        return f.result() if f is not None else self._screen_pair(self._features(k), self._tfs[tile_id])
+        return f.result() if f is not None else self._screen_pair(*self._pair(tile_id, k))
 
     def close(self) -> None:
         """Drop the screens started ahead and not asked for (waiting for any still running: its core is the
@@ -165,13 +177,16 @@ class Reranker:
     """Holds the extractor/matcher and the tile feature store of one database."""
 
     def __init__(self, db, name: str, device="cpu", conf: dict | None = None):
-        from aeroloc.matching.features import store_for
+        from aeroloc.matching.features import store_for, turn_store_for
 
         self.db, self.name = db, name
         self.conf = rerank_conf(name, conf)
         self.extractor, self.matcher = build_reranker(self.conf["features"], device, feature_overrides(self.conf))
         self.store = store_for(db, name, self.conf)
         self._have = self.store.names()
+        self.turns = turn_store_for(self.store) if self.conf.get("turned_tiles", True) else None
+        self._turned = self.turns.names() if self.turns is not None else set()  # tiles held at every turn
+        self._turns_open = None  # the turned store's open reader (_turn_reader)
         self._orientation: dict[str, float] = {}
         self._tile_cache: OrderedDict[str, dict] = OrderedDict()  # tile id -> decoded features (tile_features)
         self._pool: ThreadPoolExecutor | None = None
@@ -193,28 +208,60 @@ class Reranker:
             self._pool, self._pool_size = ThreadPoolExecutor(n, thread_name_prefix="aeroloc-screen"), n
         return self._pool
 
-    def tile_features(self, tile_ids: list[str]) -> dict[str, dict]:
-        """From the store; tiles not there yet are extracted once and written (lazy cache). The last
-        ``tile_cache`` tiles read are kept decoded: a store read costs ~1.4 ms a tile in h5py's per-dataset
-        overhead (28 ms for a query's 20 candidates), and consecutive photos of a flight or a survey share most of
-        their candidates. Callers never modify what they get."""
-        missing = [t for t in tile_ids if t not in self._have]
+    def tile_features(self, tile_ids: list[str], turn: int = 0) -> dict[str, dict]:
+        """From the store; tiles not there yet are extracted once and written (lazy cache). ``turn``: the tiles
+        at that rotation index, from the turned tile store (only tiles it holds). The last ``tile_cache`` feature
+        sets read are kept decoded: a store read costs ~1.4 ms a tile in h5py's per-dataset overhead (28 ms for
+        a query's 20 candidates), and consecutive photos of a flight or a survey share most of their candidates.
+        Callers never modify what they get."""
+        missing = [t for t in tile_ids if t not in self._have] if not turn else []
         if missing:
             new = {t: extract(self.extractor, self.db.tile_image(t), self.conf["tile_side"]) for t in missing}
             self.store.write_many(new)
             self._have |= set(missing)
+        names = {t: turned_name(t, turn) if turn else t for t in tile_ids}
         cache, size = self._tile_cache, self.conf["tile_cache"]
-        to_read = [t for t in dict.fromkeys(tile_ids) if t not in cache]
-        if to_read:
+        to_read = [n for n in dict.fromkeys(names.values()) if n not in cache]
+        if to_read and turn:
+            for n in to_read:
+                cache[n] = self._turn_reader().get(n)
+        elif to_read:
             with self.store.reader() as r:
-                for t in to_read:
-                    cache[t] = r.get(t)
-        out = {t: cache[t] for t in tile_ids}
-        for t in tile_ids:
-            cache.move_to_end(t)
+                for n in to_read:
+                    cache[n] = r.get(n)
+        out = {t: cache[names[t]] for t in tile_ids}
+        for n in names.values():
+            cache.move_to_end(n)
         while len(cache) > max(size, len(out)):  # at least this call's tiles, whatever the size
             cache.popitem(last=False)
         return out
+
+    def _turn_reader(self):
+        """The turned tile store's reader, kept open for the re-ranker's life: turned tiles are read one at a
+        time as the screens ask for them, and opening a shard file costs as much as reading a tile (~1 ms)."""
+        if self._turns_open is None:
+            self._turns_open = self.turns.reader().__enter__()
+        return self._turns_open
+
+    def _pair(
+        self, query: QueryFeatures, k: int, tile_id: str, tfs: dict | None = None, screen: bool = False
+    ) -> tuple[dict, dict]:
+        """(query features, tile features) that screen (``screen``) or match ``tile_id`` with the query at rotation
+        ``k``. A screen takes the upright query against the tile turned back
+        (:func:`~aeroloc.matching.features.inverse_turn`) when the turned tile store holds it and the query is at
+        no exact turn, so a photo of unknown heading is extracted once for its screens; else, and always for the
+        matcher, the query at ``k`` (extracted on first use) against the upright tile. LighterGlue found fewer
+        inliers on turned tiles (NAIP dev-rotated: 141 -> 105, 96 -> 84, 96 -> 29 on a diagonal), the screen
+        about as many. Either way the transform relates the original images
+        (:func:`~aeroloc.matching.features.to_original`)."""
+        if screen and 0 < k < 2 * DIAGONAL and not query.turn_deg and tile_id in self._turned:
+            return query(0), self.tile_features([tile_id], inverse_turn(k))[tile_id]
+        qf = query(k) if k < 2 * DIAGONAL else query.done[k]
+        return qf, tfs[tile_id] if tfs is not None and tile_id in tfs else self.tile_features([tile_id])[tile_id]
+
+    def match_at(self, query: QueryFeatures, c: Candidate):
+        """The matcher on candidate ``c`` at its rotation (what :meth:`match_pair` returns)."""
+        return self.match_pair(*self._pair(query, c.rot_k, c.tile_id))
 
     def doubt(self, c: Candidate) -> str | None:
         """Why the best candidate must not be trusted, or None. A learned matcher can find ~40 consistent matches
@@ -346,8 +393,11 @@ class Reranker:
             first = families(probe[0].tile_id)
             yield from [r for r in first if r != 0] + [r for r in range(2 * DIAGONAL) if r not in first]
 
-        for k in probe_order() if families else rots:
+        order = list(probe_order() if families else rots)
+        for i, k in enumerate(order):
             screens.ahead((c.tile_id, k) for c in probe)
+            if i:  # past the upright turn (most photos settle there): the next turn's probe on the second core
+                screens.ahead(((c.tile_id, k2) for k2 in order[i + 1 : i + 2] for c in probe), guess=True)
             # every probe candidate at k, even after one exits early there (its screen was started ahead): a
             # candidate already screened at another turn is not "unvisited" for _after_exit, so a short-circuit
             # here left the true tile unscreened at the turn that fits it (szada_any_0_05: a doubled field ranked
@@ -360,9 +410,12 @@ class Reranker:
         for i, c in enumerate(rest):
             settled = best["score"] >= c_["min_screen"]
             own = families(c.tile_id) if families and not settled else rots  # settled: its turn alone
+            turns = [best["rot"]] + [r for r in own if r != best["rot"]]
             if settled:  # this candidate and the next at the settled turn: the next is what the loop asks for
                 screens.ahead((r.tile_id, best["rot"]) for r in rest[i : i + 2])
-            for k in [best["rot"]] + [r for r in own if r != best["rot"]]:
+            else:  # its turns, until one settles the heading
+                screens.ahead(((c.tile_id, k) for k in turns), guess=True)
+            for k in turns:
                 if k != best["rot"] and best["score"] >= c_["min_screen"]:
                     break  # the heading is settled
                 if screen(c, k):
@@ -480,7 +533,12 @@ class Reranker:
         if self.conf["screen"]:
             unknown = rotations is None and not turn_deg and self.conf["diagonals"] and sorted(rots) == [0, 1, 2, 3]
             families = self._families(image) if unknown and cands else None
-            screens = Screens(self.screen_pair, query, tfs, self._screen_pool())
+            screens = Screens(
+                self.screen_pair,
+                lambda t, k: self._pair(query, k, t, tfs, screen=True),
+                self._screen_pool(),
+                lambda t, k: k in query.done or (t in self._turned and not query.turn_deg and k < 2 * DIAGONAL),
+            )
             try:
                 n_screened = self._screen(cands, rots, screens, families)
             finally:
@@ -497,7 +555,7 @@ class Reranker:
         for c, ks in to_verify:
             screen_angle = self._screen_angle(c, turn_deg)
             for k in ks:
-                c.take(*self.match_pair(query(k), tfs[c.tile_id]), k, "verify")
+                c.take(*self.match_pair(*self._pair(query, k, c.tile_id, tfs)), k, "verify")
                 n_verified += 1
             if until_pass and screen_angle is not None and turns_left > 0 and c.inliers < self.conf["min_inliers"]:
                 # the screen placed this tile at a turn the matcher could not bridge: match at the screen's own

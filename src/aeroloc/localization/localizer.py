@@ -231,7 +231,7 @@ class Localizer:
         if doubt:
             a = Alignment(f"not localized: {doubt}")
         if self._should_realign(a, best, (image.shape[1], image.shape[0])):
-            a = self._realign(image, best, rr.query.get(best.rot_k)) or a
+            a = self._realign(image, best, rr.query_at(best.rot_k)) or a
             if not a.localized:
                 a, best = self._realign_runners_up(image, rr, best, a)
                 out.best = best
@@ -290,9 +290,8 @@ class Localizer:
             if not verified and c.inliers < 0 and margin * c.screen > best.screen and self._far(image, c, a, reach):
                 verified = True  # the strongest such tile only: one more matcher run at most (two: the best's)
                 score = self._matched_score(best, rr) if best.inliers < 0 else score
-                tf = self.reranker.tile_features([c.tile_id])[c.tile_id]
-                if c.rot_k in rr.query:
-                    c.take(*self.reranker.match_pair(rr.query[c.rot_k], tf), c.rot_k, "verify")
+                if rr.features is not None:
+                    c.take(*self.reranker.match_at(rr.features, c), c.rot_k, "verify")
             strong = c.score >= floor and margin * c.score >= score
             if strong and self._far(image, c, a, reach):
                 return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
@@ -366,10 +365,9 @@ class Localizer:
         verified by the matcher is compared with the same count. Matcher counts run 1.5-3x screen counts: on
         szada-hu/any a screen-accepted right tile (80 screen, 256 matcher inliers) was refused as ambiguous
         against a repeated forest edge 548 m away (46 screen, 122 matcher)."""
-        if best.rot_k not in rr.query:
+        if rr.features is None:
             return best.score
-        tf = self.reranker.tile_features([best.tile_id])[best.tile_id]
-        return max(best.score, self.reranker.match_pair(rr.query[best.rot_k], tf)[0])
+        return max(best.score, self.reranker.match_at(rr.features, best)[0])
 
     def _far(self, image: np.ndarray, c, a: Alignment, reach: float) -> bool:
         """Whether candidate ``c``'s own alignment puts the query more than two reaches from ``a``."""
@@ -428,7 +426,7 @@ class Localizer:
         floor = self.reranker.conf["refine_min"]
         others = [c for c in rr.ranked if c is not best and c.H is not None and c.inliers >= floor][:n]
         for c in others:
-            found = self._realign(image, c, rr.query.get(c.rot_k))
+            found = self._realign(image, c, rr.query_at(c.rot_k))
             if found is None:
                 continue
             rival = self._rival(image, c, rr, found)

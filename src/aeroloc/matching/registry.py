@@ -91,6 +91,9 @@ CASCADE_DEFAULTS = {
     # threads the screens run on (aeroloc.localization.cascade.Screens: the same results in any order); None:
     # torch's thread count (OMP_NUM_THREADS), at most 2
     "screen_threads": None,
+    # screen and match a photo of unknown heading upright against tiles turned back, when the database holds
+    # them (aeroloc build --local-turns; aeroloc.localization.cascade.Reranker._pair); False: the query turned
+    "turned_tiles": True,
     "tile_cache": 128,  # tiles whose decoded features stay in memory between queries (~0.55 MB each)
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see EXTRACTORS and reranker_conf
     "matcher": {},  # overrides of the matcher conf

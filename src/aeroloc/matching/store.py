@@ -128,7 +128,8 @@ class FeatureStore:
 class ShardedFeatureStore:
     """The local features of a sharded build: ``FOLDER/shards/NNNNN.h5`` (one :class:`FeatureStore` per shard of
     ``shard_size`` tiles in tiles.csv order, complete once ``NNNNN.done`` exists) + ``extra.h5`` for tiles the
-    re-ranker extracted lazily. A query's candidates open only their own shards.
+    re-ranker extracted lazily. A query's candidates open only their own shards. A name ``TILE|TURN`` (a turned
+    tile, aeroloc.matching.features.turned_name) is kept in TILE's shard.
 
     Same interface as :class:`FeatureStore` (``names``, ``write_many``, ``reader().get``, ``bytes_per_item``)."""
 
@@ -185,7 +186,8 @@ class _ShardedReader:
 
     def get(self, name: str) -> dict:
         s = self.store
-        k = s.position.get(name, -1) // s.shard_size if name in s.position else -1
+        tile = name if name in s.position else name.partition("|")[0]  # "TILE|TURN" lives in TILE's shard
+        k = s.position[tile] // s.shard_size if tile in s.position else -1
         if k >= 0 and s._complete(k):
             f = self._file(k, s.shard_path(k))
         elif s.extra.path.is_file():

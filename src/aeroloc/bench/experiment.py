@@ -25,8 +25,9 @@ file*: the nearest folder, starting at the YAML's own folder and going up, that 
 
 ``limit: n`` on a query set keeps an evenly spaced subset of n queries (:func:`sample_queries`, applied by the
 pipeline), so slow re-rankers fit a time budget while every part of the set (dates, cameras) stays represented.
-``local_turns: true`` on a map builds its tiles' local features at eight turns too (``aeroloc build --local-turns``):
-photos of unknown heading are then extracted once. ``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
+``local_turns: true`` on a map builds its tiles' local features at eight turns too (``aeroloc build
+--local-turns``): photos of unknown heading are then extracted once for their screens.
+``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
 ``query_gsd: 5`` gives the images' ground resolution in metres per pixel (``aeroloc localize --query-gsd 5``): the
 dense structural stage is tried before the re-ranker. Both apply to configurations with a re-ranker only.
 ``priors: none | rough | exact`` (default ``auto``: what the file says, see aeroloc.core.priors) sets what the

@@ -11,8 +11,9 @@ re-ranking runs in two stages on features that are extracted once per query and 
    the heading found;
    each rotation's features are extracted on first use, so an upright photo costs one
    extraction; a database with turned tiles (``aeroloc build --local-turns``) screens the upright photo against
-   each tile turned back instead (:meth:`Reranker._pair`), so its screens cost one extraction whatever the heading
-   (levir-tx/any, no prior: ~8 extractions, ~0.3 s, a query before); the matcher still gets the query turned. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
+   each tile turned back instead (:meth:`Reranker._pair`), so its screens cost one extraction whatever the
+   heading (levir-tx/any, no prior: ~8 extractions, ~0.3 s, a query before); the matcher still gets the query
+   turned. With the heading unknown the diagonals (a quarter turn + 45°) are tried too, since the matchers
    bridge only ~20-40° of rotation: on the probe always, on later candidates where the dominant orientations of
    query and tile (aeroloc.matching.orientation) say the query lies nearer a diagonal. Candidates are visited in retrieval order and the screen stops early once one reaches
    ``early_exit`` inliers (the rest keep their retrieval order behind it).
@@ -243,6 +244,11 @@ class Reranker:
             self._turns_open = self.turns.reader().__enter__()
         return self._turns_open
 
+    def _turned_tile_screens(self, query: QueryFeatures, k: int, tile_id: str) -> bool:
+        """Whether the screen of ``tile_id`` at rotation ``k`` takes the upright query against the turned tile
+        (:meth:`_pair`): a turn other than upright, the query at no exact turn, the tile in the turned store."""
+        return 0 < k < 2 * DIAGONAL and not query.turn_deg and tile_id in self._turned
+
     def _pair(
         self, query: QueryFeatures, k: int, tile_id: str, tfs: dict | None = None, screen: bool = False
     ) -> tuple[dict, dict]:
@@ -254,7 +260,7 @@ class Reranker:
         inliers on turned tiles (NAIP dev-rotated: 141 -> 105, 96 -> 84, 96 -> 29 on a diagonal), the screen
         about as many. Either way the transform relates the original images
         (:func:`~aeroloc.matching.features.to_original`)."""
-        if screen and 0 < k < 2 * DIAGONAL and not query.turn_deg and tile_id in self._turned:
+        if screen and self._turned_tile_screens(query, k, tile_id):
             return query(0), self.tile_features([tile_id], inverse_turn(k))[tile_id]
         qf = query(k) if k < 2 * DIAGONAL else query.done[k]
         return qf, tfs[tile_id] if tfs is not None and tile_id in tfs else self.tile_features([tile_id])[tile_id]
@@ -537,7 +543,7 @@ class Reranker:
                 self.screen_pair,
                 lambda t, k: self._pair(query, k, t, tfs, screen=True),
                 self._screen_pool(),
-                lambda t, k: k in query.done or (t in self._turned and not query.turn_deg and k < 2 * DIAGONAL),
+                lambda t, k: k in query.done or self._turned_tile_screens(query, k, t),
             )
             try:
                 n_screened = self._screen(cands, rots, screens, families)

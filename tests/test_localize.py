@@ -265,3 +265,36 @@ def test_a_blas_loaded_after_the_first_localization_is_single_threaded_too():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "[1]", out
     assert int(out[1]) >= 2, out  # numpy's and scipy's OpenBLAS both seen (else the test shows nothing)
+
+
+def _cut_at_heading(image: np.ndarray, cx: float, cy: float, heading_deg: float, side: int) -> np.ndarray:
+    """A ``side`` px square of ``image`` centred on (cx, cy) (pixel-edge coordinates, the georeference's frame)
+    whose top points ``heading_deg`` clockwise from the image's up: each output pixel centre sampled exactly."""
+    import cv2
+
+    a = math.radians(heading_deg)
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    # source index = centre - 0.5 + rot @ (output index + 0.5 - side / 2)
+    off = np.array([cx, cy]) - 0.5 + rot @ (np.full(2, 0.5) - side / 2)
+    return cv2.warpAffine(
+        image, np.hstack([rot, off[:, None]]), (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("heading", [0.0, 90.0, 137.0, 200.0])
+def test_a_window_cut_from_the_map_at_any_heading_is_placed_without_bias(localizer, naip_map, heading):
+    """The geometry chain (turns, working resolution, keypoint frames, tile georeference) adds no offset: a
+    window of the map itself, cut at a heading with exact geometry, is placed within a fifth of a map pixel
+    (measured 0.04-0.3 m at 5 m/px on 16 such windows). A half-pixel slip anywhere would cost >= 2.5 m."""
+    import rasterio
+    from pyproj import Transformer
+
+    with rasterio.open(naip_map) as ds:
+        image = np.ascontiguousarray(ds.read([1, 2, 3]).transpose(1, 2, 0))
+        cx, cy = 0.37 * ds.width + 0.3, 0.55 * ds.height + 0.7
+        x, y = ds.transform @ (cx, cy)
+        lon, lat = Transformer.from_crs(ds.crs, "EPSG:4326", always_xy=True).transform(x, y)
+    res = localizer("cut", _cut_at_heading(image, cx, cy, heading, 200))
+    assert res.status.startswith("localized"), res.status
+    assert geo.geodesic_distance(lat, lon, res.lat, res.lon) < 1.0

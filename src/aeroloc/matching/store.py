@@ -74,9 +74,11 @@ class FeatureStore:
 
     @staticmethod
     def decode(dataset) -> np.ndarray:
-        """The stored array back as written (float arrays as float32); format-1 groups have no quant_scale."""
+        """The stored array back as written (float arrays as float32); format-1 groups have no quant_scale.
+        Only int8 arrays (what :meth:`encode` quantizes to) are looked up for a scale: an attribute lookup costs as
+        much as reading the array, and was half of a tile's read (1.1 -> 0.6 ms for the 7 arrays of an XFeat tile)."""
         v = dataset[()]
-        scale = dataset.attrs.get("quant_scale")
+        scale = dataset.attrs.get("quant_scale") if v.dtype == np.int8 else None
         if scale is not None:
             return v.astype(np.float32) / np.float32(scale)
         if isinstance(v, np.ndarray) and v.dtype == np.float16:

@@ -85,6 +85,32 @@ class FeatureStore:
             return v.astype(np.float32)
         return v
 
+    @staticmethod
+    def read_group(f, name: str) -> dict:
+        """The features of group ``name`` of the open file ``f`` (what :meth:`decode` gives for each array),
+        through h5py's low-level calls: the high-level objects' per-dataset overhead was 0.57 ms of a 0.24 ms read
+        for an XFeat tile's 7 arrays, and a query of unknown heading reads ~100 turned tiles."""
+        import h5py
+
+        gid = h5py.h5g.open(f.id, name.encode())
+        out = {}
+        for key in gid:
+            d = h5py.h5d.open(gid, key)
+            v = np.empty(d.shape, d.dtype)
+            if v.size:
+                d.read(h5py.h5s.ALL, h5py.h5s.ALL, v)
+            k = key.decode()
+            if v.dtype == np.int8 and h5py.h5a.exists(d, b"quant_scale"):
+                a = h5py.h5a.open(d, b"quant_scale")
+                scale = np.empty(a.shape, a.dtype)
+                a.read(scale)
+                out[k] = v.astype(np.float32) / np.float32(scale)
+            elif v.dtype == np.float16:
+                out[k] = v.astype(np.float32)
+            else:
+                out[k] = v[()] if v.ndim == 0 else v
+        return out
+
     def write_many(self, items: dict[str, dict]) -> None:
         with self._open("a") as f:
             for name, feats in items.items():
@@ -116,8 +142,7 @@ class FeatureStore:
             def get(self, name: str) -> dict:
                 if name not in self.f:
                     raise AerolocError(f"{store.path}: no features for tile {name}")
-                g = self.f[name]
-                return {k: store.decode(g[k]) for k in g}
+                return store.read_group(self.f, name)
 
         return _Reader()
 
@@ -173,6 +198,7 @@ class ShardedFeatureStore:
 class _ShardedReader:
     def __init__(self, store: ShardedFeatureStore):
         self.store, self.open = store, {}
+        self.complete: dict[int, bool] = {}  # shard -> finished; a shard never becomes unfinished
 
     def __enter__(self):
         return self
@@ -190,7 +216,9 @@ class _ShardedReader:
         s = self.store
         tile = name if name in s.position else name.partition("|")[0]  # "TILE|TURN" lives in TILE's shard
         k = s.position[tile] // s.shard_size if tile in s.position else -1
-        if k >= 0 and s._complete(k):
+        if k >= 0 and k not in self.complete:
+            self.complete[k] = s._complete(k)
+        if k >= 0 and self.complete[k]:
             f = self._file(k, s.shard_path(k))
         elif s.extra.path.is_file():
             f = self._file("extra", s.extra.path)
@@ -198,5 +226,4 @@ class _ShardedReader:
             raise AerolocError(f"{s.folder}: no features for tile {name}")
         if name not in f:
             raise AerolocError(f"{s.folder}: no features for tile {name}")
-        g = f[name]
-        return {key: FeatureStore.decode(g[key]) for key in g}
+        return FeatureStore.read_group(f, name)

@@ -174,6 +174,27 @@ def test_unit_norm_descriptors_stored_as_int8_within_one_step(tmp_path):
     np.testing.assert_allclose(got["scores"], f["scores"], atol=5e-4)
 
 
+def test_a_tile_without_keypoints_and_scalar_fields_read_back_as_written(tmp_path):
+    """The low-level group read (FeatureStore.read_group) gives empty arrays their shape and dtype, and 0-d
+    fields numpy scalars of their own type, as the arrays were written."""
+    store = FeatureStore(tmp_path / "f.h5")
+    empty = {
+        "keypoints": np.zeros((0, 2), np.float32),
+        "descriptors": np.zeros((0, 64), np.float32),
+        "scale": np.float64(2.5),
+        "rot_k": np.int64(3),
+        "orig_size": np.array([1280, 1230], np.int64),
+    }
+    store.write_many({"t": empty})
+    with store.reader() as r:
+        got = r.get("t")
+    assert got["keypoints"].shape == (0, 2) and got["descriptors"].shape == (0, 64)
+    assert got["keypoints"].dtype == np.float32 and got["descriptors"].dtype == np.float32
+    assert type(got["scale"]) is np.float64 and got["scale"] == 2.5
+    assert type(got["rot_k"]) is np.int64 and got["rot_k"] == 3
+    np.testing.assert_array_equal(got["orig_size"], [1280, 1230])
+
+
 def test_not_unit_norm_descriptors_keep_float16(tmp_path):
     import h5py
 

@@ -73,23 +73,11 @@ class FeatureStore:
         return v, {}
 
     @staticmethod
-    def decode(dataset) -> np.ndarray:
-        """The stored array back as written (float arrays as float32); format-1 groups have no quant_scale.
-        Only int8 arrays (what :meth:`encode` quantizes to) are looked up for a scale: an attribute lookup costs as
-        much as reading the array, and was half of a tile's read (1.1 -> 0.6 ms for the 7 arrays of an XFeat tile)."""
-        v = dataset[()]
-        scale = dataset.attrs.get("quant_scale") if v.dtype == np.int8 else None
-        if scale is not None:
-            return v.astype(np.float32) / np.float32(scale)
-        if isinstance(v, np.ndarray) and v.dtype == np.float16:
-            return v.astype(np.float32)
-        return v
-
-    @staticmethod
     def read_group(f, name: str) -> dict:
-        """The features of group ``name`` of the open file ``f`` (what :meth:`decode` gives for each array),
-        through h5py's low-level calls: the high-level objects' per-dataset overhead was 0.57 ms of a 0.24 ms read
-        for an XFeat tile's 7 arrays, and a query of unknown heading reads ~100 turned tiles."""
+        """The features of group ``name`` of the open file ``f``, each array back as written (float arrays as
+        float32; int8 descriptors scaled back by their ``quant_scale``, which format-1 groups lack). Read through
+        h5py's low-level calls: its high-level objects took 0.57 ms for an XFeat tile's 7 arrays (half of it the
+        attribute lookups), these 0.24 ms, and a photo of unknown heading reads ~50-250 turned tiles."""
         import h5py
 
         gid = h5py.h5g.open(f.id, name.encode())
@@ -128,7 +116,7 @@ class FeatureStore:
             f.flush()
 
     def reader(self):
-        """Context manager yielding ``get(name) -> Features`` (float arrays back as float32, see ``decode``)."""
+        """Context manager yielding ``get(name) -> Features`` (float arrays back as float32, see ``read_group``)."""
         store = self
 
         class _Reader:
@@ -198,7 +186,7 @@ class ShardedFeatureStore:
 class _ShardedReader:
     def __init__(self, store: ShardedFeatureStore):
         self.store, self.open = store, {}
-        self.complete: dict[int, bool] = {}  # shard -> finished; a shard never becomes unfinished
+        self.complete: set[int] = set()  # shards seen finished (one stays finished; an unfinished one is asked again)
 
     def __enter__(self):
         return self
@@ -216,9 +204,9 @@ class _ShardedReader:
         s = self.store
         tile = name if name in s.position else name.partition("|")[0]  # "TILE|TURN" lives in TILE's shard
         k = s.position[tile] // s.shard_size if tile in s.position else -1
-        if k >= 0 and k not in self.complete:
-            self.complete[k] = s._complete(k)
-        if k >= 0 and self.complete[k]:
+        if k >= 0 and k not in self.complete and s._complete(k):
+            self.complete.add(k)
+        if k in self.complete:
             f = self._file(k, s.shard_path(k))
         elif s.extra.path.is_file():
             f = self._file("extra", s.extra.path)

@@ -268,17 +268,16 @@ def test_a_blas_loaded_after_the_first_localization_is_single_threaded_too():
 
 
 def _cut_at_heading(image: np.ndarray, cx: float, cy: float, heading_deg: float, side: int) -> np.ndarray:
-    """A ``side`` px square of ``image`` centred on (cx, cy) (pixel-edge coordinates, the georeference's frame)
-    whose top points ``heading_deg`` clockwise from the image's up: each output pixel centre sampled exactly."""
+    """A ``side`` px square of ``image`` centred on (cx, cy) (pixel-edge coordinates, the georeference's frame),
+    its content turned ``heading_deg`` as the sets' crops (aeroloc.flight.composite.crop_to_map), each output
+    pixel centre sampled exactly: OpenCV's inverse map takes pixel indices, half a pixel from the edge frame."""
     import cv2
 
-    a = math.radians(heading_deg)
-    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    # source index = centre - 0.5 + rot @ (output index + 0.5 - side / 2)
-    off = np.array([cx, cy]) - 0.5 + rot @ (np.full(2, 0.5) - side / 2)
-    return cv2.warpAffine(
-        image, np.hstack([rot, off[:, None]]), (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    )
+    from aeroloc.flight.composite import crop_to_map
+
+    a = crop_to_map(heading_deg, 1.0, (cx, cy), (side, side))
+    a[:, 2] += a[:, :2] @ np.full(2, 0.5) - 0.5  # index = edge - 0.5, on both sides
+    return cv2.warpAffine(image, a, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 
 @pytest.mark.slow

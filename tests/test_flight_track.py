@@ -50,6 +50,48 @@ def _truth(folder):
         return {r["name"]: r for r in csv.DictReader(f)}
 
 
+@pytest.mark.parametrize("yaw, quarter_turns", [(0.0, 0), (90.0, 1), (180.0, 2), (270.0, 3)])
+def test_a_rendered_frame_is_centred_on_its_recorded_position(yaw, quarter_turns):
+    """A frame rendered at the composite's own resolution and a quarter-turn heading is exactly the composite's
+    pixels around (x, y), turned with the aircraft: the recorded truth is the frame's centre. Sampling a
+    pixel-edge affine as OpenCV's pixel indices shifted turned frames by one pixel (half a pixel at the centre)."""
+    import numpy as np
+
+    from aeroloc.flight.composite import Composite
+    from aeroloc.flight.simulate import FlightPlan, State, render
+
+    image = np.random.default_rng(0).integers(0, 256, (200, 240, 3), dtype=np.uint8)
+    plan = FlightPlan(width=20, height=20)
+    comp = Composite(image, np.ones(image.shape[:2], bool), 1.0, plan.gsd(500.0), [])
+    frame = render(comp, plan, State(110.0, 90.0, yaw, 500.0))
+    assert np.array_equal(frame, np.rot90(image[80:100, 100:120], quarter_turns))
+
+
+@pytest.mark.parametrize("heading", [0.0, 90.0, 270.0])
+def test_a_crop_composed_then_flown_over_is_returned_as_it_was(tmp_path, naip_map, heading):
+    """The composite places each crop on its footprint with the same geometry the renderer reads it back with:
+    a crop at the map's resolution, composed at its lat/lon and heading, is rendered pixel for pixel from a
+    frame centred there (inside the one-pixel rim the composite erodes)."""
+    import numpy as np
+
+    from aeroloc.core.images import write_image
+    from aeroloc.core.queries import Query
+    from aeroloc.flight.composite import compose
+    from aeroloc.flight.simulate import FlightPlan, State, render
+    from aeroloc.maps.sources import open_map
+
+    m = open_map(naip_map)
+    crop = np.random.default_rng(1).integers(0, 256, (30, 30, 3), dtype=np.uint8)
+    write_image(tmp_path / "crop.png", crop)
+    lat, lon = m.pixel_to_latlon(300.0, 200.0)
+    q = Query("crop", tmp_path / "crop.png", lat, lon, heading, truth_gsd_m=m.resolution_m)
+    comp = compose(m, [q], factor=1.0)
+    plan = FlightPlan(width=30, height=30)
+    alt = comp.gsd_m * plan.width / (2.0 * math.tan(math.radians(plan.hfov_deg) / 2.0))
+    frame = render(comp, plan, State(300.0, 200.0, -heading, alt))
+    assert np.array_equal(frame[2:-2, 2:-2], crop[2:-2, 2:-2])
+
+
 def test_simulated_flight_overlaps_turns_and_loses_frames(flight):
     folder, plan, m = flight
     truth = list(_truth(folder).values())
@@ -72,8 +114,8 @@ def test_simulated_flight_overlaps_turns_and_loses_frames(flight):
 
 def test_a_long_flight_returns_to_the_covered_ground(naip_map, naip_dev):
     """3,000 frames (25 min) over the dev crops' composite: the default planner, once a turn has carried the
-    aircraft off the covered ground, re-plans at random every frame and stands at the composite's edge (measured:
-    2,796 frames still, 5 % over covered ground); return_to_cover heads for the nearest covered point, and flies
+    aircraft off the covered ground, re-plans at random every frame and stands at the composite's edge (measured
+    on seed 5: 2,355 frames still, 12 % over covered ground); return_to_cover heads for the nearest covered point, and flies
     the same path as the default until the aircraft first leaves it."""
     import numpy as np
 
@@ -84,7 +126,7 @@ def test_a_long_flight_returns_to_the_covered_ground(naip_map, naip_dev):
 
     comp = compose(open_map(naip_map), load_queries(naip_dev, priors="none"))
     paths = {
-        rc: np.array([(s.x, s.y, s.yaw) for _, _, s in fly(FlightPlan(frames=3000, seed=3, return_to_cover=rc), comp)])
+        rc: np.array([(s.x, s.y, s.yaw) for _, _, s in fly(FlightPlan(frames=3000, seed=5, return_to_cover=rc), comp)])
         for rc in (False, True)
     }
     xy = paths[True][:, :2]
@@ -93,7 +135,7 @@ def test_a_long_flight_returns_to_the_covered_ground(naip_map, naip_dev):
     covered = comp.coverage[np.clip(xy[:, 1].astype(int), 0, h - 1), np.clip(xy[:, 0].astype(int), 0, w - 1)]
     assert covered.mean() > 0.98
     same = np.all(paths[True] == paths[False], axis=1)
-    assert not same.all() and int(np.argmin(same)) >= 50  # the default's path until it leaves (frame 99 here)
+    assert not same.all() and int(np.argmin(same)) >= 50  # the default's path until it leaves (frame 85 here)
 
 
 def test_coasting_follows_the_turn_the_frames_showed(flight):

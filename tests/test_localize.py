@@ -273,10 +273,9 @@ def _cut_at_heading(image: np.ndarray, cx: float, cy: float, heading_deg: float,
     pixel centre sampled exactly: OpenCV's inverse map takes pixel indices, half a pixel from the edge frame."""
     import cv2
 
-    from aeroloc.flight.composite import crop_to_map
+    from aeroloc.flight.composite import crop_to_map, index_frame
 
-    a = crop_to_map(heading_deg, 1.0, (cx, cy), (side, side))
-    a[:, 2] += a[:, :2] @ np.full(2, 0.5) - 0.5  # index = edge - 0.5, on both sides
+    a = index_frame(crop_to_map(heading_deg, 1.0, (cx, cy), (side, side)))
     return cv2.warpAffine(image, a, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 

@@ -43,6 +43,14 @@ def crop_to_map(turn_deg: float, scale: float, centre_map: tuple[float, float], 
     return np.hstack([rot, shift[:, None]])
 
 
+def index_frame(a: np.ndarray) -> np.ndarray:
+    """``a`` (pixel-edge coordinates on both sides, the georeference's frame) as OpenCV's warps read it: pixel
+    indices, index = edge - 0.5. Without this step a turned or scaled crop lands up to a pixel off its footprint."""
+    a = np.array(a, float)
+    a[:, 2] += a[:, :2] @ np.full(2, 0.5) - 0.5
+    return a
+
+
 def compose(map_, queries, factor: float = 2.0, max_px: int = 6000) -> Composite:
     """The crops of ``queries`` (aeroloc.core.queries.Query with truth lat/lon, heading, ground resolution)
     painted into ``map_``'s grid at ``factor`` x its resolution."""
@@ -71,7 +79,7 @@ def compose(map_, queries, factor: float = 2.0, max_px: int = 6000) -> Composite
         c1, r1 = np.minimum(np.ceil(corners.max(0)).astype(int), [w, h])
         if c1 <= c0 or r1 <= r0:
             continue
-        A = A - [[0, 0, c0], [0, 0, r0]]  # warp into the crop's bounding box only
+        A = index_frame(A) - [[0, 0, c0], [0, 0, r0]]  # warp into the crop's bounding box only
         size = (int(c1 - c0), int(r1 - r0))
         warped = cv2.warpAffine(img, A, size, flags=cv2.INTER_LINEAR, borderValue=0)
         inside = cv2.warpAffine(np.ones((ih, iw), np.uint8), A, size, flags=cv2.INTER_NEAREST)

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.flight.composite import Composite, crop_to_map
+from aeroloc.flight.composite import Composite, crop_to_map, index_frame
 
 
 @dataclass(frozen=True)
@@ -155,7 +155,7 @@ def render(comp: Composite, plan: FlightPlan, s: State) -> np.ndarray:
     """The nadir frame at ``s``: the composite resampled to the frame's ground resolution and turned with the
     aircraft (its content turned ``-yaw`` from north-up, the top of the frame pointing along the flight)."""
     scale = plan.gsd(s.alt) / comp.gsd_m
-    A = crop_to_map(-s.yaw, scale, (s.x, s.y), (plan.width, plan.height))
+    A = index_frame(crop_to_map(-s.yaw, scale, (s.x, s.y), (plan.width, plan.height)))
     return cv2.warpAffine(
         comp.image, A, (plan.width, plan.height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=0
     )

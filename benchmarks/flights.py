@@ -13,7 +13,7 @@ option of that name (long flights: back to the covered ground instead of a rando
 
 ``--seeds``: each simulated flight is flown again at these seeds too (its own path and frames; OUT/<name>-seed<S>)
 and a summary per flight follows the table: one flight's share swings by +-0.1 with its path (a one-pixel change
-of the composite moved NAIP's from 0.80 to 0.95), and a failure that one path avoids shows on another (seed 4:
+of the composite moved NAIP's from 0.75 to 0.95), and a failure that one path avoids shows on another (seed 4:
 the heading walked off by weak fixes, 143 wrong frames over three NAIP flights, now 0).
 """
 

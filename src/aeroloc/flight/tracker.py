@@ -50,12 +50,12 @@ class TrackConfig:
     scale_fix_score: float = 0.3  # without metadata, accepted fixes at least this good nudge the ground resolution
     # (until a baseline confirms it)
     scale_fix_k: float = 0.1  # ... this share of the way to their refined scale (in log)
-    turn_fix_score: float = 0.3  # accepted fixes at least this good nudge the heading (weaker ones sat on changed
-    # ground: NAIP seed-4 flight, fixes of 0.21-0.28 turned a heading 0.2 deg off to 2.5 deg off in 16 frames)
     scale_first_fixes: int = 3  # ... the first this many after a global fix refined over scale_first_ladder and
     scale_first_k: float = 0.5  # ... taken this share of the way (NAIP: the pipeline's first fix 8 % small, k = 0.1
     # from the tracking ladder left it 3-4 % small for 30 frames, the track 20-29 m off over changed ground)
     scale_first_ladder: tuple[float, ...] = (0.85, 0.88, 0.91, 0.94, 0.97, 1.03, 1.06, 1.09, 1.12, 1.15)
+    turn_fix_score: float = 0.3  # accepted fixes at least this good nudge the heading (weaker ones sat on changed
+    # ground: NAIP seed-4 flight, fixes of 0.21-0.28 turned a heading 0.2 deg off to 2.5 deg off in 16 frames)
     near_scale_k: float = 0.5  # a re-localization around the prediction: this share of the way to its scale (the
     # aircraft may have climbed or descended while the frames were missing)
     pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)

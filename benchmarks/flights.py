@@ -8,8 +8,8 @@ Toledo photo flights are the shared set's photos of one camera in EXIF time orde
 (itself ±2-5 m). RSS is read from /proc at the first frame, a tenth into the flight (every model loaded), half way
 and at the end; with --every N also every N frames (frame, RSS, wall and CPU seconds, frames/s over the
 last N, load average; --traced adds Python's traced allocations, tracemalloc, which slows the run), printed as it
-goes and written to OUT/<name>/memory.csv. A simulated flight's ``return_to_cover: true`` is the simulator's
-option of that name (long flights: back to the covered ground instead of a random walk at its edge).
+goes and written to OUT/<name>/memory.csv. A simulated flight's ``return_to_cover`` is the simulator's
+option of that name (on by default: back to the covered ground instead of a random walk at its edge).
 
 ``--seeds``: each simulated flight is flown again at these seeds too (its own path and frames; OUT/<name>-seed<S>)
 and a summary per flight follows the table: one flight's share swings by +-0.1 with its path (a one-pixel change

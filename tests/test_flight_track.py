@@ -271,6 +271,25 @@ def test_black_frames_coast_on_where_a_seen_frame_would_be_lost():
     assert f.lost_now(blind=True)
 
 
+def test_odometry_steps_at_a_heading_turned_while_blind_widen_the_uncertainty():
+    """After an outage in which the aircraft may have turned (heading_tol_deg beyond 90°), an odometry step may
+    point anywhere: the uncertainty grows by the step's length, linearly. With a known heading the step adds
+    only its own small error (levir-tx seed 2: a 180° turn while blind, the steps flown backwards 6 m a frame
+    from the truth while the sigma stood at 125 m)."""
+    from aeroloc.flight.filter import PositionFilter
+
+    sigmas = {}
+    for tol in (0.0, 30.0, 150.0):
+        f = PositionFilter()
+        f.reset(0.0, 0.0, 125.0)
+        for _ in range(10):
+            f.predict_odometry(5.0, 0.0, 0.5, heading_tol_deg=tol)
+        sigmas[tol] = f.est.sigma
+    assert sigmas[0.0] < 126.0
+    assert sigmas[30.0] == pytest.approx(sigmas[0.0] + 10 * 5.0 * 0.5, abs=0.5)
+    assert sigmas[150.0] == pytest.approx(sigmas[0.0] + 10 * 5.0, abs=0.5)  # sin(90°): any direction at all
+
+
 def test_baseline_scale_measures_a_short_odometry_chain(flight):
     """Odometry steps 3 % short (a drifted scale) against fixes on the true path: the baselines between fixes
     far enough apart give the correction, and it converges on 1 / 0.97 without overshooting."""

@@ -99,10 +99,15 @@ class PositionFilter:
     def lose(self) -> None:
         self.est, self.rejects, self.misses = None, 0, 0
 
-    def predict_odometry(self, dx: float, dy: float, dt: float, turn_deg: float = 0.0, checked: bool = True) -> None:
+    def predict_odometry(
+        self, dx: float, dy: float, dt: float, turn_deg: float = 0.0, checked: bool = True, heading_tol_deg: float = 0.0
+    ) -> None:
         """Move by an odometry step (metres) in which the frame turned by ``turn_deg`` (the content's turn, the
         project's convention: the opposite of the aircraft's); the step also refreshes velocity and turn rate.
-        ``checked``: whether the scale the step was measured at is confirmed (a height, a baseline)."""
+        ``checked``: whether the scale the step was measured at is confirmed (a height, a baseline).
+        ``heading_tol_deg``: how far the heading the step is laid out at may be off (a turn made while blind):
+        the step may point that much elsewhere, so the uncertainty grows by its length x sin(that), linearly (a
+        heading error turns every step the same way)."""
         e, c = self.est, self.cfg
         self.unfixed_s += max(dt, 0.0)
         self.checked = checked
@@ -112,6 +117,7 @@ class PositionFilter:
             return
         e.x, e.y = e.x + dx, e.y + dy
         e.sigma = math.hypot(e.sigma, (c.vo_rel if checked else c.vo_rel_unchecked) * d + c.vo_abs_m)
+        e.sigma += d * math.sin(math.radians(min(max(heading_tol_deg, 0.0), 90.0)))
         if dt > 0:  # the old velocity turned with the aircraft, the step's chord by half its turn (an arc's end)
             a = -math.radians(turn_deg)
             ox, oy = _turned(e.vx, e.vy, a)

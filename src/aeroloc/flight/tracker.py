@@ -262,7 +262,11 @@ class Tracker:
             before = (self.filter.est.x, self.filter.est.y)
             turn = turn_difference(new.turn_deg - self.pose.turn_deg)
             dx, dy = (new.x - self.pose.x) * self.gsd, (new.y - self.pose.y) * self.gsd
-            self.filter.predict_odometry(dx, dy, dt, turn, self.metric or self.baseline.checked)
+            # off the map's chain (coasted since a fix), the heading carries the turns made while blind: a drone
+            # that turned 180° in a 15 s outage (levir-tx seed 2) flew its odometry steps backwards, 6 m a frame
+            # away from the truth, while the sigma stood at 125 m and the search reached no farther
+            blind_turn = 0.0 if self.anchored else self.cfg.relocalize_heading_dps * self.unseen_turn_s
+            self.filter.predict_odometry(dx, dy, dt, turn, self.metric or self.baseline.checked, blind_turn)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
             self.pose = new if moved else self.pose
             if moved:

@@ -265,7 +265,7 @@ class Tracker:
             # off the map's chain (coasted since a fix), the heading carries the turns made while blind: a drone
             # that turned 180° in a 15 s outage (levir-tx seed 2) flew its odometry steps backwards, 6 m a frame
             # away from the truth, while the sigma stood at 125 m and the search reached no farther
-            blind_turn = 0.0 if self.anchored else self.cfg.relocalize_heading_dps * self.unseen_turn_s
+            blind_turn = 0.0 if self.anchored else self._blind_turn_deg()
             self.filter.predict_odometry(dx, dy, dt, turn, self.metric or self.baseline.checked, blind_turn)
             moved = (self.filter.est.x - before[0]) ** 2 + (self.filter.est.y - before[1]) ** 2 > 0
             self.pose = new if moved else self.pose
@@ -526,8 +526,12 @@ class Tracker:
         """Degrees the carried heading may be off at time ``now``: 15° + ``relocalize_heading_dps`` x (the seconds
         since the turn was last measured + those coasted since a fix last measured the heading), at most 180°."""
         since = self.turn_time if self.turn_time is not None else self.cal_time
-        age = self.unseen_turn_s + (0.0 if since is None else max(0.0, now - since))
-        return min(180.0, 15.0 + self.cfg.relocalize_heading_dps * age)
+        unmeasured = 0.0 if since is None else self.cfg.relocalize_heading_dps * max(0.0, now - since)
+        return min(180.0, 15.0 + self._blind_turn_deg() + unmeasured)
+
+    def _blind_turn_deg(self) -> float:
+        """Degrees the aircraft may have turned in the seconds coasted since a fix last measured the heading."""
+        return self.cfg.relocalize_heading_dps * self.unseen_turn_s
 
     def _near(
         self, ref: FrameRef, image, priors: Priors, x: float, y: float, reach_m: float, turn: float

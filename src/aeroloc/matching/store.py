@@ -73,13 +73,16 @@ class FeatureStore:
         return v, {}
 
     @staticmethod
-    def read_group(f, name: str) -> dict:
-        """The features of group ``name`` of the open file ``f``, each array back as written (float arrays as
-        float32; int8 descriptors scaled back by their ``quant_scale``, which format-1 groups lack). Read through
-        h5py's low-level calls: its high-level objects took 0.57 ms for an XFeat tile's 7 arrays (half of it the
-        attribute lookups), these 0.24 ms, and a photo of unknown heading reads ~50-250 turned tiles."""
+    def read_group(f, name: str, where) -> dict:
+        """The features of group ``name`` of the open file ``f`` (of the store at ``where``, for the error), each
+        array back as written (float arrays as float32; int8 descriptors scaled back by their ``quant_scale``,
+        which format-1 groups lack). Read through h5py's low-level calls: its high-level objects took 0.57 ms for
+        an XFeat tile's 7 arrays (half of it the attribute lookups), these 0.24 ms, and a photo of unknown
+        heading reads ~50-250 turned tiles."""
         import h5py
 
+        if name not in f:
+            raise AerolocError(f"{where}: no features for tile {name}")
         gid = h5py.h5g.open(f.id, name.encode())
         out = {}
         for key in gid:
@@ -128,9 +131,7 @@ class FeatureStore:
                 self.f.close()
 
             def get(self, name: str) -> dict:
-                if name not in self.f:
-                    raise AerolocError(f"{store.path}: no features for tile {name}")
-                return store.read_group(self.f, name)
+                return store.read_group(self.f, name, store.path)
 
         return _Reader()
 
@@ -212,6 +213,4 @@ class _ShardedReader:
             f = self._file("extra", s.extra.path)
         else:
             raise AerolocError(f"{s.folder}: no features for tile {name}")
-        if name not in f:
-            raise AerolocError(f"{s.folder}: no features for tile {name}")
-        return FeatureStore.read_group(f, name)
+        return FeatureStore.read_group(f, name, s.folder)

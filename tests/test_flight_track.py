@@ -670,3 +670,60 @@ def test_three_frames_agreeing_distinctly_together_relocalize_four_need_half_of_
     assert tracker._vote(at, cfg.vote_score - 0.01, 2.0) == 0  # a weak peak breaks the row
     assert [tracker._vote(at, 0.3, r) for r in (1.38, 1.10)] == [0, 0]  # two after it: not yet three
     assert tracker._vote(at, 0.3, 1.32) == cfg.vote_frames_min
+
+
+def test_local_features_confirm_a_searched_frames_peak_only_where_the_frame_is(flight, tracked):
+    """A frame searched around the estimate whose best peak is not distinct is fixed when local features confirm
+    that peak (levir-tx flight without metadata, seed 3, after its outage: the truth was the best peak of 7 frames
+    at ratios 1.05-1.10; recovery 8 frames -> 1). Confirmation is the frame matched at the peak's heading and scale
+    against the map window the peak says it covers: the true pose confirms, the same frame 300 m off or turned
+    180° does not, and a weak peak is not even matched."""
+    from dataclasses import replace
+
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import Tracker
+    from aeroloc.flight.window_fix import WindowFix
+    from aeroloc.matching.sweep import SWEEP_DEFAULTS
+
+    folder, _, m = flight
+    _, _, localizer, _ = tracked
+    tracker = Tracker(localizer)
+    name = "frame_000005.jpg"
+    t = _truth(folder)[name]
+    col, row = m.latlon_to_pixel(float(t["lat"]), float(t["lon"]))
+    image = read_image(folder / "frames" / name)
+    peak = WindowFix(
+        float(col), float(row), float(t["heading_deg"]), float(t["gsd_m"]) / m.resolution_m, 0.4, 1.05, (0, 0)
+    )
+    assert tracker._confirmed(image, peak) >= SWEEP_DEFAULTS["confirm_inliers"]
+    assert tracker._confirmed(image, replace(peak, x=peak.x + 300.0 / m.resolution_m)) == 0
+    assert tracker._confirmed(image, replace(peak, turn_deg=peak.turn_deg + 180.0)) == 0
+    assert tracker._confirmed(image, replace(peak, score=tracker.cfg.vote_score - 0.01)) == 0
+    tracker.cfg = replace(tracker.cfg, near_confirm=False)
+    assert tracker._confirmed(image, peak) == 0
+
+
+def test_after_an_outage_the_pipeline_fixes_a_frame_only_where_the_aircraft_can_be(tracked):
+    """A frame searched in vain around the estimate after an outage goes to the single-image pipeline (levir-tx
+    seed 2: a 180° turn made while blind put the truth beyond the search's reach, recovery 17 frames -> 1); its
+    fix is kept only within the speed bound x the time since the last fix of the estimate, never farther."""
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.filter import Estimate
+    from aeroloc.flight.tracker import Tracker
+
+    points, _, localizer, fl = tracked
+    tracker = Tracker(localizer)
+    i = next(k for k, p in enumerate(points) if p.source == "global fix")
+    ref, p = fl.frames[i], points[i]
+    image = read_image(ref.path)
+    col, row = localizer.map.latlon_to_pixel(p.lat, p.lon)
+    x, y = float(col) * tracker.gsd, float(row) * tracker.gsd
+    tracker.cal_time = ref.time - 10.0  # the last fix 10 s ago: the aircraft can be 600 m from where it was carried
+    near = Estimate(x + 400.0, y, 100.0)
+    pose, why = tracker._pipeline_within(ref, image, ref.priors, near)
+    assert pose is not None, why
+    assert math.hypot(pose.x * tracker.gsd - x, pose.y * tracker.gsd - y) < 10.0
+    assert abs(float(why.rsplit(", ", 1)[1].split(" m from")[0]) - 400.0) < 10.0
+    far = Estimate(x + 2000.0, y, 100.0)
+    pose, why = tracker._pipeline_within(ref, image, ref.priors, far)
+    assert pose is None and "beyond reach (600 m)" in why

@@ -58,7 +58,13 @@ class TrackConfig:
     # ground: NAIP seed-4 flight, fixes of 0.21-0.28 turned a heading 0.2 deg off to 2.5 deg off in 16 frames)
     near_scale_k: float = 0.5  # a re-localization around the prediction: this share of the way to its scale (the
     # aircraft may have climbed or descended while the frames were missing)
-    pipeline_every: int = 10  # while lost: the full single-image pipeline on every n-th frame only (seconds each)
+    pipeline_every: int = 2  # while lost: the full single-image pipeline on every n-th frame only (seconds each;
+    # it was every 10th: szada-hu seed 2 stayed lost 37 frames after its outage while the dense stage over the
+    # whole map took 13-21 s a frame and found nothing, and the pipeline placed the second frame 1.1 m off)
+    wide_pipeline_every: int = 3  # a frame searched around the estimate after an outage and not found there: the
+    # pipeline too, on the first such frame and every n-th after (levir-tx seed 2: a 180° turn made while blind put
+    # the truth beyond the search's reach for 10 frames, and the dense stage over the whole map took 15-30 s a
+    # frame and found nothing, while the pipeline placed each of those frames within 2 m in 0.2-0.7 s)
     dense_every: int = 3  # ... and the whole-map dense search on every n-th (the first lost frame included)
     near_share: float = 0.5  # while lost: first search around the last estimate carried on at its velocity, as
     # far as this share of the speed bound x the time since (the coasting model), or the whole bound around the
@@ -81,6 +87,8 @@ class TrackConfig:
     # together: levir-tx flight without metadata after its outage, ratios 1.38, 1.10, 1.32 on the truth; the NAIP
     # flight's wrong agreement above had 1.01-1.05 each)
     vote_score: float = 0.3  # ... each scoring at least this
+    near_confirm: bool = True  # ... or the best peak (scoring >= vote_score) of one frame when local features
+    # confirm it (Tracker._confirmed)
     vote_m: float = 15.0  # ... within max(this, 3 map px)
     vote_turn_deg: float = 6.0  # ... and this turn
     trim_native: bool = True  # after a whole-map search, native heap returned to the system (glibc malloc_trim)
@@ -188,6 +196,7 @@ class Tracker:
         self.scale_settled = False  # a baseline confirmed the scale since the last global fix (fixes stop nudging it)
         self.scale_fixes = 0  # windowed fixes that nudged the scale since the last global fix
         self.lost_frames = 0
+        self.wide_frames = 0  # frames in a row searched around the estimate (after an outage) without a fix
         self.cal_time: float | None = None  # when the calibration was last confirmed by a fix
         self.turn_time: float | None = None  # the last frame whose step the heading's uncertainty accounts for (an
         # odometry step, a coasted step, a fix); frames not tracked since (a lost track) add their time too
@@ -295,6 +304,7 @@ class Tracker:
         searched = False  # whether this frame was already searched around the estimate as widely as when lost
         if not blank and due:
             if e.sigma <= self.cfg.wide_sigma_m and self.matcher.fits(size, self.pose, e.sigma / self.gsd):
+                self.wide_frames = 0
                 status, fixed = self._window_fix(image, size)
             else:
                 status, fixed = self._wide_fix(ref, image, size)
@@ -340,9 +350,15 @@ class Tracker:
         priors = self._priors(ref, size[0])
         reach = max(self.cfg.wide_reach_sigmas * e.sigma, self.cfg.near_min_m)
         pose, status = self._near(ref, image, priors, e.x, e.y, reach, self.pose.turn_deg)
+        status = status.replace("the prediction", "the estimate")
+        if pose is None and self.wide_frames % self.cfg.wide_pipeline_every == 0:
+            pose, why = self._pipeline_within(ref, image, priors, e)
+            status += f"; {why}"
+        self.wide_frames += 1
         if pose is None:
             self.filter.misses += 1
-            return status.replace("the prediction", "the estimate"), False
+            return status, False
+        self.wide_frames = 0
         v = _turned(e.vx, e.vy, -math.radians(turn_difference(pose.turn_deg - self.pose.turn_deg)))
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         self.filter.est.vx, self.filter.est.vy = v
@@ -355,6 +371,36 @@ class Tracker:
         self.baseline.checked = self.scale_settled = False
         self.scale_fixes = 0
         return status.replace("re-localized near the prediction", "re-localized around the estimate"), True
+
+    def _pipeline_within(self, ref: FrameRef, image, priors: Priors, e: Estimate) -> tuple[Pose | None, str]:
+        """The single-image pipeline's fix of a frame searched around the estimate in vain, kept only where the
+        aircraft can be: within the speed bound x the time since the last fix of where that fix was carried to
+        (the estimate), at least the search's own reach. The search around the estimate trusts the coasted
+        position to a sigma; after a turn made while blind it can be farther off than that."""
+        pose, status = self._pipeline(ref, image, priors)
+        if pose is None:
+            return None, status
+        since = max(0.0, ref.time - self.cal_time) if self.cal_time is not None else math.inf
+        bound = max(self.cfg.near_min_m, self.cfg.wide_reach_sigmas * e.sigma, self.cfg.filter.speed_max_mps * since)
+        d = math.hypot(pose.x * self.gsd - e.x, pose.y * self.gsd - e.y)
+        if d > bound:
+            return None, f"the pipeline's fix {d:.0f} m from the estimate is beyond reach ({bound:.0f} m)"
+        return pose, f"{status}, {d:.0f} m from the estimate"
+
+    def _pipeline(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
+        """The single-image pipeline (:class:`aeroloc.localization.Localizer`) on one frame: (pose, status); the
+        pose's scale the frame's own metadata's when it has one."""
+        size = (image.shape[1], image.shape[0])
+        loc = self.localizer(ref.name, image, priors=priors)
+        pose = self._pose_of(loc, size) if loc.localized else None
+        if pose is None and loc.localized:  # a fix without a turn or scale (the sweep's): found in a window
+            pose = self._pose_at(loc, image, priors)
+        if self.cfg.trim_native:
+            release_native_memory()
+        own = self._own_gsd(ref, size)
+        if pose is not None and own is not None:  # the frame's metadata, not the match's coarse scale ladder
+            pose = replace(pose, scale=own / self.gsd)
+        return pose, loc.status or "not localized"
 
     def _window_fix(self, image, size) -> tuple[str, bool]:
         """Match the frame around the prediction and gate the fix; (status, whether a fix was fused)."""
@@ -472,13 +518,8 @@ class Tracker:
             pose, status = self._dense_global(image, priors)
             whole_map = True
         if pose is None and (self.calibration is None or self.lost_frames % self.cfg.pipeline_every == 0):
-            loc = self.localizer(ref.name, image, priors=priors)
-            pose = self._pose_of(loc, size) if loc.localized else None
-            if pose is None and loc.localized:  # a fix without a turn or scale (the sweep's): found in a window
-                pose = self._pose_at(loc, image, priors)
-            status = loc.status or status
-            whole_map = True
-        if whole_map and self.cfg.trim_native:
+            pose, status = self._pipeline(ref, image, priors)
+        elif whole_map and self.cfg.trim_native:
             release_native_memory()
         if pose is None:
             return self._point(ref, "lost", note + status)
@@ -487,6 +528,7 @@ class Tracker:
             pose = replace(pose, scale=own / self.gsd)
         self.pose = self.calibration = pose
         self.lost_since, self.lost_frames, self.cal_time, self.dead = None, 0, ref.time, None
+        self.wide_frames = 0
         self.turn_time, self.unseen_turn_s = ref.time, 0.0
         self.rejected.clear()
         self.candidates.clear()
@@ -563,6 +605,9 @@ class Tracker:
             agree = self._vote(Pose(best.x, best.y, best.turn_deg, scale), best.score, best.ratio)
             if fix is None and agree:
                 fix, where = best, f", the best peak of {agree} frames in a row"
+            elif fix is None and (n := self._confirmed(image, best)):
+                fix, where = best, f", confirmed by {n} local-feature inliers"
+                self.candidates.clear()
         if fix is None:
             return None, f"not localized: nothing distinct within {reach_m:.0f} m of the prediction"
         status = (
@@ -572,6 +617,28 @@ class Tracker:
         if self._own_gsd(ref, (image.shape[1], image.shape[0])) is None:
             scale *= (fix.scale / pose.scale) ** self.cfg.near_scale_k
         return Pose(fix.x, fix.y, fix.turn_deg, scale), status
+
+    def _confirmed(self, image, peak) -> int:
+        """Inliers with which local features confirm a searched frame's best but not distinct peak (0 when they
+        do not): the frame turned to the peak's heading against the map window the peak says it covers, at its
+        scale, aligned within max(25 m, 10 map px) of it (the whole-map sweep's confirmation,
+        aeroloc.localization.sweep_stage.confirm, and its inlier floor). The correlation's ratio weighs the peak
+        against every placement in a reach of hundreds of metres at every heading; local features test the
+        one place independently (levir-tx without metadata after its outage: the truth was the best peak of 7
+        frames in a row at ratios 1.05-1.10 before four of them agreed)."""
+        loc = self.localizer
+        if not self.cfg.near_confirm or peak.score < self.cfg.vote_score or loc.reranker is None:
+            return 0
+        from aeroloc.localization.alignment import reach_m
+        from aeroloc.localization.sweep_stage import confirm
+        from aeroloc.matching.sweep import SWEEP_DEFAULTS, Hypothesis
+
+        conf = loc.sweep.conf if loc.sweep is not None else SWEEP_DEFAULTS
+        h = Hypothesis(peak.x, peak.y, peak.turn_deg, peak.scale, peak.score)
+        fix, n = confirm(
+            loc.reranker, self.map, image, h, reach_m(self.gsd), conf["confirm_inliers"], conf["confirm_screen_min"]
+        )
+        return n if fix is not None else 0
 
     def _vote(self, pose: Pose, score: float, ratio: float = 1.0) -> int:
         """Record a searched frame's best but not distinct peak; ``vote_frames`` when the best peaks of that many

@@ -706,9 +706,9 @@ def test_local_features_confirm_a_searched_frames_peak_only_where_the_frame_is(f
 def test_after_an_outage_the_pipeline_fixes_a_frame_only_where_the_aircraft_can_be(tracked):
     """A frame searched in vain around the estimate after an outage goes to the single-image pipeline (levir-tx
     seed 2: a 180° turn made while blind put the truth beyond the search's reach, recovery 17 frames -> 1); its
-    fix is kept only within the speed bound x the time since the last fix of the estimate, never farther."""
+    fix is kept only within the speed bound x the time since the last fix of that fix, never farther."""
     from aeroloc.core.images import read_image
-    from aeroloc.flight.filter import Estimate
+    from aeroloc.flight.calibration import Pose
     from aeroloc.flight.tracker import Tracker
 
     points, _, localizer, fl = tracked
@@ -717,13 +717,14 @@ def test_after_an_outage_the_pipeline_fixes_a_frame_only_where_the_aircraft_can_
     ref, p = fl.frames[i], points[i]
     image = read_image(ref.path)
     col, row = localizer.map.latlon_to_pixel(p.lat, p.lon)
-    x, y = float(col) * tracker.gsd, float(row) * tracker.gsd
-    tracker.cal_time = ref.time - 10.0  # the last fix 10 s ago: the aircraft can be 600 m from where it was carried
-    near = Estimate(x + 400.0, y, 100.0)
-    pose, why = tracker._pipeline_within(ref, image, ref.priors, near)
+    col, row = float(col), float(row)
+    tracker.cal_time = ref.time - 10.0  # the last fix 10 s ago: the aircraft can be 600 m from it
+    assert tracker.cfg.filter.speed_max_mps == 60.0
+    tracker.calibration = Pose(col + 400.0 / tracker.gsd, row, 0.0, 0.4)
+    pose, why = tracker._pipeline_within(ref, image, ref.priors)
     assert pose is not None, why
-    assert math.hypot(pose.x * tracker.gsd - x, pose.y * tracker.gsd - y) < 10.0
+    assert math.hypot(pose.x - col, pose.y - row) * tracker.gsd < 10.0
     assert abs(float(why.rsplit(", ", 1)[1].split(" m from")[0]) - 400.0) < 10.0
-    far = Estimate(x + 2000.0, y, 100.0)
-    pose, why = tracker._pipeline_within(ref, image, ref.priors, far)
+    tracker.calibration = Pose(col + 2000.0 / tracker.gsd, row, 0.0, 0.4)
+    pose, why = tracker._pipeline_within(ref, image, ref.priors)
     assert pose is None and "beyond reach (600 m)" in why

@@ -352,7 +352,7 @@ class Tracker:
         pose, status = self._near(ref, image, priors, e.x, e.y, reach, self.pose.turn_deg)
         status = status.replace("the prediction", "the estimate")
         if pose is None and self.wide_frames % self.cfg.wide_pipeline_every == 0:
-            pose, why = self._pipeline_within(ref, image, priors, e)
+            pose, why = self._pipeline_within(ref, image, priors)
             status += f"; {why}"
         self.wide_frames += 1
         if pose is None:
@@ -372,20 +372,20 @@ class Tracker:
         self.scale_fixes = 0
         return status.replace("re-localized near the prediction", "re-localized around the estimate"), True
 
-    def _pipeline_within(self, ref: FrameRef, image, priors: Priors, e: Estimate) -> tuple[Pose | None, str]:
-        """The single-image pipeline's fix of a frame searched around the estimate in vain, kept only where the
-        aircraft can be: within the speed bound x the time since the last fix of where that fix was carried to
-        (the estimate), at least the search's own reach. The search around the estimate trusts the coasted
-        position to a sigma; after a turn made while blind it can be farther off than that."""
+    def _pipeline_within(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
+        """The single-image pipeline's fix of a frame searched in vain around the estimate, kept only where the
+        aircraft can be: within the speed bound x the time since the last fix of that fix (at least
+        ``near_min_m``). The search around the estimate trusts the coasted position to a sigma; after a turn made
+        while blind the aircraft can be farther from it than that, never farther from its last fix."""
         pose, status = self._pipeline(ref, image, priors)
-        if pose is None:
-            return None, status
-        since = max(0.0, ref.time - self.cal_time) if self.cal_time is not None else math.inf
-        bound = max(self.cfg.near_min_m, self.cfg.wide_reach_sigmas * e.sigma, self.cfg.filter.speed_max_mps * since)
-        d = math.hypot(pose.x * self.gsd - e.x, pose.y * self.gsd - e.y)
+        cal = self.calibration
+        if pose is None or cal is None or self.cal_time is None:
+            return pose, status
+        bound = max(self.cfg.near_min_m, self.cfg.filter.speed_max_mps * max(0.0, ref.time - self.cal_time))
+        d = math.hypot(pose.x - cal.x, pose.y - cal.y) * self.gsd
         if d > bound:
-            return None, f"the pipeline's fix {d:.0f} m from the estimate is beyond reach ({bound:.0f} m)"
-        return pose, f"{status}, {d:.0f} m from the estimate"
+            return None, f"the pipeline's fix {d:.0f} m from the last fix is beyond reach ({bound:.0f} m)"
+        return pose, f"{status}, {d:.0f} m from the last fix"
 
     def _pipeline(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
         """The single-image pipeline (:class:`aeroloc.localization.Localizer`) on one frame: (pose, status); the

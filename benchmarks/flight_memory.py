@@ -1,8 +1,9 @@
 """Flight mode (issue #14): memory while the track is lost. A simulated flight of an experiments file (written by
 benchmarks/flights.py) is tracked normally up to --start, then every frame is searched as a lost track's is (around
-the prediction, the whole-map dense stage every 3rd frame, the single-image pipeline every 10th) and the track is
-kept lost, so the whole-map searches run --frames times in a row. Prints RSS (MB) and CPU seconds every --every
-frames, with the native heap returned after each whole-map search (the default) or not (--no-trim);
+the prediction, the whole-map dense stage every 3rd frame, the single-image pipeline every 2nd:
+TrackConfig.dense_every and pipeline_every) and the track is kept lost, so the whole-map searches run --frames
+times in a row. Prints RSS (MB) and CPU seconds every --every frames, with the native heap returned after each
+whole-map search (the default) or not (--no-trim);
 --whole-map skips the search around the prediction (over ground it can place, it would end the loss at once).
 
 usage: nice python benchmarks/flight_memory.py experiments/flights.yaml --only naip-telemetry [--no-trim]

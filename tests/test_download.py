@@ -688,7 +688,8 @@ def test_unreachable_server_stops_early_and_says_so(tmp_path, naip_tiles):
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     provider = resolve_provider(f"http://127.0.0.1:{port}/{{z}}/{{x}}/{{y}}.png")
-    # one worker: the stop point does not depend on how the two cores are shared
+    # one worker: the stop point does not depend on how the two cores are shared (the worker counts its failures
+    # in a row itself; when the collecting thread did, a loaded machine let the worker try 9 tiles, not 5)
     report, manifest = download_map(
         tmp_path / "m",
         naip_tiles.bbox,
@@ -702,7 +703,7 @@ def test_unreachable_server_stops_early_and_says_so(tmp_path, naip_tiles):
     )
     assert "in a row failed" in report.aborted and "connection error" in report.aborted
     assert len(report.failed) == 35 and len(manifest["tiles_missing"]) == 35 and report.downloaded == 0
-    assert sum(r == "not attempted (run stopped)" for r in report.failed.values()) >= 35 - 5 - 2
+    assert sum(r == "not attempted (run stopped)" for r in report.failed.values()) == 35 - 5
 
 
 def test_max_tiles_and_foreign_folder_are_refused(tmp_path, naip_tiles, tile_server):

@@ -374,8 +374,21 @@ def download_tiles(
     try:
         pending = _not_on_disk(pool, jobs, progress)  # 1. resume: keep tiles already saved and decodable
         report.skipped = len(jobs) - len(pending)
-        futures = {pool.submit(fetch_tile, job, policy, bucket, secret, stop, report, lock): job for job in pending}
-        _collect(futures, report, stop, max_consecutive_failures, progress)  # 2. fetch the rest
+        streak = _FailureStreak(max_consecutive_failures, stop, lock)
+
+        def fetch(job: TileJob) -> Path | None:
+            try:
+                path = fetch_tile(job, policy, bucket, secret, stop, report, lock)
+            except TileError as exc:
+                streak.failed(exc)
+                raise
+            streak.succeeded()
+            return path
+
+        futures = {pool.submit(fetch, job): job for job in pending}
+        _collect(futures, report, stop, progress)  # 2. fetch the rest
+        if streak.message and not report.aborted:
+            report.aborted = streak.message
     except BaseException:
         stop.set()  # workers finish the tile in hand (atomic write) and take no new one
         pool.shutdown(wait=True, cancel_futures=True)
@@ -404,45 +417,60 @@ def _not_on_disk(pool: ThreadPoolExecutor, jobs: list[TileJob], progress: bool) 
     return [job for job, ok in zip(jobs, checks) if not ok]
 
 
-def _collect(futures: dict, report: DownloadReport, stop: threading.Event, max_consecutive: int, progress: bool):
-    """Count the fetches as they finish; a fatal error, or ``max_consecutive`` failures in a row, sets ``stop``
-    (the jobs not started yet then fail as 'not attempted')."""
+def _collect(futures: dict, report: DownloadReport, stop: threading.Event, progress: bool):
+    """Count the fetches as they finish; a fatal error sets ``stop`` (the jobs not started yet then fail as 'not
+    attempted'; so does a streak of failures, :class:`_FailureStreak`, in the workers)."""
     from tqdm import tqdm
 
     bar = tqdm(
         total=len(futures), unit="tile", desc="download", disable=not progress, dynamic_ncols=True, smoothing=0.1
     )
-    consecutive = 0
     try:
         for fut in as_completed(futures):  # O(n) overall, unlike repeated wait() on the whole set
             job = futures[fut]
             try:
                 fut.result()
                 report.downloaded += 1
-                consecutive = 0
             except TileError as exc:
-                consecutive = _record_failure(job, exc, report, stop, consecutive, max_consecutive)
+                _record_failure(job, exc, report, stop)
             bar.update(1)
             bar.set_postfix(missing=len(report.failed), retries=report.retries, refresh=False)
     finally:
         bar.close()
 
 
-def _record_failure(
-    job: TileJob, exc: TileError, report: DownloadReport, stop: threading.Event, consecutive: int, max_consecutive: int
-) -> int:
-    """Note one failed tile; the new count of failures in a row."""
+def _record_failure(job: TileJob, exc: TileError, report: DownloadReport, stop: threading.Event) -> None:
+    """Note one failed tile; a fatal one stops the run."""
     report.failed[job.label] = exc.reason
     if exc.fatal:
         if not report.fatal:
             report.aborted, report.fatal = f"tile {job.label}: {exc.reason}", True
         stop.set()
-    elif exc.reason != "not attempted (run stopped)":
-        consecutive += 1
-        if consecutive >= max_consecutive and not stop.is_set():
-            report.aborted = f"{consecutive} tiles in a row failed (last: {exc.reason}); is the server reachable?"
-            stop.set()
-    return consecutive
+
+
+class _FailureStreak:
+    """Failures in a row, counted by the workers as each tile ends: ``max_consecutive`` of them stop the run
+    before a worker takes its next tile. Counted where the results are collected instead, a worker failing
+    fast (a refused connection) ran ahead of the collecting thread on a loaded machine: one worker tried 9
+    tiles of an unreachable server before the stop after 5."""
+
+    def __init__(self, max_consecutive: int, stop: threading.Event, lock: threading.Lock):
+        self.max, self.stop, self.lock = max_consecutive, stop, lock
+        self.count = 0
+        self.message = ""
+
+    def succeeded(self) -> None:
+        with self.lock:
+            self.count = 0
+
+    def failed(self, exc: TileError) -> None:
+        if exc.fatal or exc.reason == "not attempted (run stopped)":
+            return
+        with self.lock:
+            self.count += 1
+            if self.count >= self.max and not self.stop.is_set():
+                self.message = f"{self.count} tiles in a row failed (last: {exc.reason}); is the server reachable?"
+                self.stop.set()
 
 
 # --- whole maps ----------------------------------------------------------------------------------------------

@@ -728,3 +728,22 @@ def test_after_an_outage_the_pipeline_fixes_a_frame_only_where_the_aircraft_can_
     tracker.calibration = Pose(col + 2000.0 / tracker.gsd, row, 0.0, 0.4)
     pose, why = tracker._pipeline_within(ref, image, ref.priors)
     assert pose is None and "beyond reach (600 m)" in why
+
+
+def test_a_frame_searched_around_the_estimate_says_so(tracked):
+    """The frame after an outage is searched around the filter's estimate, not a prediction: its status says
+    "re-localized around the estimate" (the pipeline's fallback was appended after the wording was changed, so
+    for a while it read "near the estimate")."""
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import Tracker
+
+    points, _, localizer, fl = tracked
+    i = next(k for k, p in enumerate(points) if p.source == "global fix")
+    tracker = Tracker(localizer)
+    tracker.restore(points[: i + 1])
+    tracker.filter.est.sigma = 80.0  # an outage's uncertainty: beyond the tracking window's
+    ref = fl.frames[i + 1]
+    image = read_image(ref.path)
+    status, fixed = tracker._wide_fix(ref, image, (image.shape[1], image.shape[0]))
+    assert fixed, status
+    assert status.startswith("re-localized around the estimate"), status

@@ -350,7 +350,7 @@ class Tracker:
         priors = self._priors(ref, size[0])
         reach = max(self.cfg.wide_reach_sigmas * e.sigma, self.cfg.near_min_m)
         pose, status = self._near(ref, image, priors, e.x, e.y, reach, self.pose.turn_deg)
-        status = status.replace("the prediction", "the estimate")
+        status = status.replace("re-localized near", "re-localized around").replace("the prediction", "the estimate")
         if pose is None and self.wide_frames % self.cfg.wide_pipeline_every == 0:
             pose, why = self._pipeline_within(ref, image, priors)
             status += f"; {why}"
@@ -370,7 +370,7 @@ class Tracker:
         self.baseline.broken()
         self.baseline.checked = self.scale_settled = False
         self.scale_fixes = 0
-        return status.replace("re-localized near the prediction", "re-localized around the estimate"), True
+        return status, True
 
     def _pipeline_within(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
         """The single-image pipeline's fix of a frame searched in vain around the estimate, kept only where the

@@ -375,3 +375,30 @@ def test_tile_features_kept_decoded_are_the_stored_ones_and_bounded(db):
             assert all(np.array_equal(fresh[k], again[t][k]) for k in fresh)
     r.tile_features(ids[:1])
     assert len(r._tile_cache) <= 4 and ids[0] in r._tile_cache
+
+
+@pytest.mark.slow
+def test_candidates_screened_below_the_weak_floor_are_not_matched(db, query):
+    """A real photo against wrong tiles only (centres > 2 km from its truth): their screens stay weak, and those
+    below ``weak_screen_min`` are never handed to the matcher (it never made such a pass); with the floor at 0 the
+    same best-screened candidates are matched, so the floor is what spared them. Nothing passes either way."""
+    q, image = query
+    far = [
+        t.id
+        for t in db.tiles
+        if geo.geodesic_distance(q.lat, q.lon, *t.pixel_to_latlon(t.width / 2, t.height / 2)) > 2000
+    ][:8]
+    runs = {}
+    for floor in (12, 0):
+        rr = Reranker(db, "xfeat-lighterglue", "cpu", conf={"weak_screen_min": floor})
+        res = rr(image, far, 0)
+        best = sorted((c for c in res.ranked if c.screen >= 0), key=lambda c: (-c.screen, c.retrieval_rank))
+        runs[floor] = (res, best[: rr.conf["max_verify"]])
+    res, top = runs[12]
+    below = [c for c in top if c.screen < 12]
+    assert below, [c.screen for c in top]  # the case the floor is for
+    assert all(c.inliers == -1 for c in below) and res.n_verified == len(top) - len(below)
+    assert not any(c.inliers >= 35 for c in res.ranked)
+    res0, top0 = runs[0]
+    assert [c.tile_id for c in top0] == [c.tile_id for c in top]  # the screens do not depend on the floor
+    assert res0.n_verified == len(top0) and all(c.inliers >= 0 for c in top0)

@@ -87,6 +87,7 @@ CASCADE_DEFAULTS = {
     # screened again with the query turned by their own screen's angle, and matched there when that re-screen
     # settles a heading (aeroloc.localization.cascade.Reranker.weak_screen_turns); 0: off
     "weak_screen_turns": 3,
+    # the weak floor: a candidate screened below it is neither re-screened there nor verified by the matcher
     "weak_screen_min": 12,
     # threads the screens run on (aeroloc.localization.cascade.Screens: the same results in any order); None:
     # torch's thread count (OMP_NUM_THREADS), at most 2

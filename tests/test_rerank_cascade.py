@@ -398,7 +398,7 @@ def test_candidates_screened_below_the_weak_floor_are_not_matched(db, query):
     below = [c for c in top if c.screen < 12]
     assert below, [c.screen for c in top]  # the case the floor is for
     assert all(c.inliers == -1 for c in below) and res.n_verified == len(top) - len(below)
-    assert not any(c.inliers >= 35 for c in res.ranked)
+    assert not any(c.inliers >= rr.conf["min_inliers"] for c in res.ranked)
     res0, top0 = runs[0]
     assert [c.tile_id for c in top0] == [c.tile_id for c in top]  # the screens do not depend on the floor
     assert res0.n_verified == len(top0) and all(c.inliers >= 0 for c in top0)

@@ -359,6 +359,46 @@ def test_store_not_localized_query_round_trips_as_none(tmp_path):
 
 
 # --- runner: resume ----------------------------------------------------------------------------------------
+def test_a_sweep_resumes_only_what_this_code_measured(tmp_path, monkeypatch, capsys):
+    """Stored configurations are skipped only when a run of the same code identity measured them: after a code
+    change (another identity) every configuration is measured again and the run says why; a store made before
+    runs recorded their code opens and counts as other code."""
+    import aeroloc.bench.runner as runner
+    import aeroloc.core.provenance as provenance
+
+    monkeypatch.setattr(runner, "write_outputs", lambda exp, configs, store, run_id: exp.output / "r.html")
+    root = make_project(tmp_path)
+    path = write_yaml(root, base_doc())
+    n = len(expand(load_experiment(path)))
+    run_experiment(path, run_config=FakePipeline(), progress=False)
+    same = FakePipeline()
+    run_experiment(path, run_config=same, progress=False)
+    assert same.calls == []
+    monkeypatch.setattr(provenance, "code_identity", lambda packages=None, root=None: "changed-code")
+    changed = FakePipeline()
+    run_experiment(path, run_config=changed, progress=True)
+    assert len(changed.calls) == n
+    assert f"{n} stored configurations were measured by other code than this (changed-code)" in capsys.readouterr().out
+    with ResultStore(root / "out" / "t") as store:
+        codes = [r["code"] for r in store.runs()]
+        assert codes[-1] == "changed-code" and codes[0] == codes[1] != "changed-code"
+        assert all(store.done(k, "changed-code") for k in changed.calls)
+    # a store of the old schema (runs without a code column)
+    old = tmp_path / "old"
+    old.mkdir()
+    db = sqlite3.connect(old / "results.sqlite")
+    db.executescript(
+        "CREATE TABLE runs (run_id TEXT PRIMARY KEY, experiment TEXT, experiment_file TEXT, hostname TEXT, "
+        "cpu_count INTEGER, torch_version TEXT, device TEXT, python_version TEXT, aeroloc_version TEXT, "
+        "started_at TEXT, finished_at TEXT, status TEXT);"
+        "INSERT INTO runs VALUES ('r0','t','','h',2,'','cpu','3','0.1','','','finished');"
+    )
+    db.close()
+    with ResultStore(old) as store:
+        run = store.start_run("t", code="now")
+        assert {r["run_id"]: r["code"] for r in store.runs()} == {"r0": None, run: "now"}
+
+
 def test_runner_resumes_after_interrupt(tmp_path, monkeypatch):
     import aeroloc.bench.runner as runner
 

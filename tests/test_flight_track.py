@@ -367,7 +367,8 @@ def test_telemetry_height_and_lens_set_every_frames_ground_resolution(flight, tr
     assert max(gsds) / min(gsds) > 1.01  # the height did change along the flight
 
 
-def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path):
+def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path, monkeypatch):
+    import aeroloc.flight.run as run
     from aeroloc.flight.run import track_flight
 
     points, _, localizer, fl = tracked
@@ -382,6 +383,19 @@ def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path):
     assert all(p.localized and p.source != "global fix" for p in full[12:15])
     again = track_flight(localizer, fl, out)  # a finished track is read back
     assert [p.row() for p in again] == [p.row() for p in full]
+
+    class Boom(Exception):
+        pass
+
+    def no_tracker(*a, **k):
+        raise Boom("tracked again")
+
+    monkeypatch.setattr(run, "Tracker", no_tracker)
+    assert [p.row() for p in track_flight(localizer, fl, out)] == [p.row() for p in full]  # this code's: read back
+    # the same flight and settings with other code (another hash of the source) are tracked again, not read back
+    monkeypatch.setattr(run, "code_identity", lambda packages=None: "other-code")
+    with pytest.raises(Boom):
+        track_flight(localizer, fl, out)
 
 
 def test_geojson_and_kml(tracked, tmp_path, flight):

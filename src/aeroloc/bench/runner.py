@@ -44,11 +44,17 @@ def sweep(
 ) -> str:
     from tqdm import tqdm
 
-    todo = [c for c in configs if not (resume and store.done(c.key()))]
-    run_id = store.start_run(exp.name, exp.file, exp.device)
+    from aeroloc.core.provenance import code_identity
+
+    code = code_identity()
+    todo = [c for c in configs if not (resume and store.done(c.key(), code))]
+    stale = sum(1 for c in todo if resume and store.done(c.key()))
+    run_id = store.start_run(exp.name, exp.file, exp.device, code)
     skipped = len(configs) - len(todo)
     if progress and skipped:
         print(f"{exp.name}: {skipped} of {len(configs)} configurations already in {store.path}, {len(todo)} to run")
+    if progress and stale:  # a resumed sweep must not pass the old code's figures off as this code's
+        print(f"{exp.name}: {stale} stored configurations were measured by other code than this ({code}): run again")
     status, current = "failed", None
     bar = tqdm(
         total=len(todo),

@@ -65,7 +65,7 @@ SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
     run_id TEXT PRIMARY KEY, experiment TEXT, experiment_file TEXT, hostname TEXT, cpu_count INTEGER,
     torch_version TEXT, device TEXT, python_version TEXT, aeroloc_version TEXT,
-    started_at TEXT, finished_at TEXT, status TEXT);
+    started_at TEXT, finished_at TEXT, status TEXT, code TEXT);
 CREATE TABLE IF NOT EXISTS results (
     run_id TEXT NOT NULL REFERENCES runs(run_id), config_key TEXT NOT NULL,
     experiment TEXT, map TEXT, map_path TEXT, tile_m REAL, queries TEXT, queries_path TEXT, method TEXT,
@@ -128,6 +128,9 @@ class ResultStore:
             self.db = sqlite3.connect(self.path, timeout=60)
             self.db.row_factory = sqlite3.Row
             self.db.executescript(SCHEMA)
+            if "code" not in {r["name"] for r in self.db.execute("PRAGMA table_info(runs)")}:
+                with self.db:  # stores made before runs recorded their code (aeroloc.bench.provenance)
+                    self.db.execute("ALTER TABLE runs ADD COLUMN code TEXT")
         except (OSError, sqlite3.DatabaseError) as exc:
             raise AerolocError(f"{self.folder / DB_NAME}: cannot open the results database ({exc})") from None
         self._columns = {r["name"] for r in self.db.execute("PRAGMA table_info(results)")}
@@ -142,12 +145,15 @@ class ResultStore:
         self.db.close()
 
     # --- runs ---------------------------------------------------------------------------------------------
-    def start_run(self, experiment: str, experiment_file="", device: str = "") -> str:
+    def start_run(self, experiment: str, experiment_file="", device: str = "", code: str | None = None) -> str:
+        """A new run; ``code``: the identity of the code measuring it (aeroloc.core.provenance.code_identity)."""
         info = machine_info()
         run_id = f"{datetime.now():%Y%m%d-%H%M%S}-{info['hostname'][:20]}-{secrets.token_hex(2)}"
         with self.db:
             self.db.execute(
-                "INSERT INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                "INSERT INTO runs (run_id, experiment, experiment_file, hostname, cpu_count, torch_version, device, "
+                "python_version, aeroloc_version, started_at, finished_at, status, code) "
+                "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (
                     run_id,
                     experiment,
@@ -161,6 +167,7 @@ class ResultStore:
                     _now(),
                     None,
                     "running",
+                    code,
                 ),
             )
         return run_id
@@ -176,9 +183,14 @@ class ResultStore:
         return [dict(r) for r in self.db.execute(q + " ORDER BY started_at, rowid", args)]
 
     # --- results ------------------------------------------------------------------------------------------
-    def done(self, config_key: str) -> bool:
-        """True once any run stored this configuration."""
-        return self.db.execute("SELECT 1 FROM results WHERE config_key=? LIMIT 1", (config_key,)).fetchone() is not None
+    def done(self, config_key: str, code: str | None = None) -> bool:
+        """True once a run stored this configuration; with ``code``, a run of that code identity (a result of
+        other code, or of a run that recorded none, is not this code's)."""
+        q = "SELECT 1 FROM results r JOIN runs u ON u.run_id = r.run_id WHERE r.config_key=?"
+        args: tuple = (config_key,)
+        if code is not None:
+            q, args = q + " AND u.code=?", (config_key, code)
+        return self.db.execute(q + " LIMIT 1", args).fetchone() is not None
 
     def add_result(self, run_id: str, config, output: dict) -> None:
         """Store one configuration's output (``run_config``'s dict) in one transaction."""

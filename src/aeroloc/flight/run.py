@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import asdict
 
 from aeroloc.core.io import ResumableCSV, config_key, file_identity
+from aeroloc.core.provenance import LOCALIZATION_PACKAGES, code_identity
 from aeroloc.flight.frames import Flight
 from aeroloc.flight.tracker import COLUMNS, TrackConfig, Tracker, TrackPoint
 
@@ -20,8 +21,10 @@ def signature(db, flight: Flight, options, config: TrackConfig) -> str:
     ident = (
         file_identity(src) if src else [(f.name, f.time) for f in flight.frames[:: max(1, len(flight.frames) // 50)]]
     )
+    # the code too: a finished track of other code is tracked again, not read back as this code's
+    code = code_identity((*LOCALIZATION_PACKAGES, "flight"))
     return config_key(
-        "track-v1", db.tiles_hash(), str(flight.source), ident, len(flight.frames), repr(options), asdict(config)
+        "track-v1", db.tiles_hash(), str(flight.source), ident, len(flight.frames), repr(options), asdict(config), code
     )
 
 

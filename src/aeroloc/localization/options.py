@@ -6,12 +6,11 @@ one message, before any file is touched, wherever the options come from.
 
 from __future__ import annotations
 
-import functools
 import json
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
+from aeroloc.core import provenance
 from aeroloc.core.errors import AerolocError
 from aeroloc.localization.dense_stage import check_query_gsd
 from aeroloc.matching.registry import DEFAULT_RERANKER, rerank_conf
@@ -128,16 +127,8 @@ class LocalizeOptions:
         return asdict(self)
 
 
-@functools.cache
 def code_identity() -> str:
-    """A hash of the source of every package a localization's result depends on: a results file written by other
-    code is neither resumed nor reused (a changed acceptance rule with unchanged settings had reused old fixes)."""
-    import hashlib
-
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha1()
-    for pkg in ("core", "localization", "maps", "matching", "retrieval"):
-        for f in sorted((root / pkg).rglob("*.py")):
-            h.update(f.relative_to(root).as_posix().encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()[:12]
+    """The identity of the code a localization's result depends on (aeroloc.core.provenance): a results file
+    written by other code is neither resumed nor reused (a changed acceptance rule with unchanged settings had
+    reused old fixes)."""
+    return provenance.code_identity(provenance.LOCALIZATION_PACKAGES)

@@ -129,7 +129,7 @@ class ResultStore:
             self.db.row_factory = sqlite3.Row
             self.db.executescript(SCHEMA)
             if "code" not in {r["name"] for r in self.db.execute("PRAGMA table_info(runs)")}:
-                with self.db:  # stores made before runs recorded their code (aeroloc.bench.provenance)
+                with self.db:  # stores made before runs recorded their code (aeroloc.core.provenance)
                     self.db.execute("ALTER TABLE runs ADD COLUMN code TEXT")
         except (OSError, sqlite3.DatabaseError) as exc:
             raise AerolocError(f"{self.folder / DB_NAME}: cannot open the results database ({exc})") from None

@@ -719,6 +719,9 @@ def test_html_report_is_offline_and_renders_in_chromium(tmp_path, naip_map, naip
     # Leaflet ran offline: the map container exists, the imagery overlay is placed, and the shown configuration
     # draws one interactive SVG path per marker/line (localized: line + 2 dots; not localized: 1 ring)
     assert "leaflet-container" in dom and "leaflet-image-layer" in dom
+    from aeroloc.core.provenance import code_identity
+
+    assert f">{code_identity()}</td>" in dom  # the runs table names the code that measured them
     n_lost = len([i for i in range(n_queries) if i % 7 == 3])
     assert dom.count("leaflet-interactive") >= 3 * (n_queries - n_lost) + n_lost
     assert external_urls(dom) == []

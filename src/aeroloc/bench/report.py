@@ -205,12 +205,15 @@ def _runs_html(runs: list[dict]) -> str:
         f"<tr><td class=lab>{e(r['run_id'])}</td><td class=lab>{e(str(r.get('hostname')))}</td>"
         f"<td class=num>{r.get('cpu_count')}</td><td class=lab>{e(str(r.get('torch_version')))}</td>"
         f"<td class=lab>{e(str(r.get('device')))}</td><td class=lab>{e(str(r.get('started_at')))}</td>"
-        f"<td class=lab>{e(str(r.get('finished_at') or '–'))}</td><td class=lab>{e(str(r.get('status')))}</td></tr>"
+        f"<td class=lab>{e(str(r.get('finished_at') or '–'))}</td><td class=lab>{e(str(r.get('status')))}</td>"
+        f"<td class=lab>{e(str(r.get('code') or '–'))}</td></tr>"
         for r in runs
     )
     return (
         "<table class=runs><thead><tr><th>run</th><th>host</th><th>CPUs</th><th>torch</th><th>device</th>"
-        f"<th>started (UTC)</th><th>finished</th><th>status</th></tr></thead><tbody>{rows}</tbody></table>"
+        f"<th>started (UTC)</th><th>finished</th><th>status</th>"
+        '<th title="hash of the aeroloc source that measured the run (aeroloc.core.provenance)">code</th>'
+        f"</tr></thead><tbody>{rows}</tbody></table>"
     )
 
 

@@ -27,13 +27,13 @@ def int8_mutual_nn(d0, d1, min_similarity: float) -> np.ndarray:
     cosines."""
     import torch
 
+    from aeroloc.matching.models.xfeat import mutual_rows
+
     a = d0 / (np.linalg.norm(d0, axis=1, keepdims=True) + 1e-8)
     b = d1 / (np.linalg.norm(d1, axis=1, keepdims=True) + 1e-8)
     qa = np.rint(a * (127 / max(float(np.abs(a).max()), 1e-8))).astype(np.int8)
     sim = torch._int_mm(torch.from_numpy(qa), torch.from_numpy(np.rint(b * 127).astype(np.int8)).T).numpy()
-    nn01 = sim.argmax(1)
-    keep = np.flatnonzero(sim[np.arange(len(a)), nn01] >= sim.max(0)[nn01])
-    keep = keep[np.unique(nn01[keep], return_index=True)[1]]
+    keep, nn01, _ = mutual_rows(sim)  # the same mutual rule as aeroloc's, on the int32 products
     keep = keep[np.einsum("ij,ij->i", a[keep], b[nn01[keep]]) > min_similarity]
     return np.stack([keep, nn01[keep]], 1)
 

@@ -26,8 +26,8 @@ def run_experiment(
     """Run (or resume) the sweep of experiment file ``path`` and return the HTML report's path.
 
     ``run_config(config, cache_dir) -> dict`` defaults to :func:`aeroloc.bench.pipeline.run_config`; configurations
-    a run of this same code already stored (aeroloc.core.provenance) are skipped unless ``resume`` is False; ``report_only`` rebuilds the outputs from
-    the store without running anything."""
+    a run of this same code already stored (aeroloc.core.provenance) are skipped unless ``resume`` is False;
+    ``report_only`` rebuilds the outputs from the store without running anything."""
     exp = load_experiment(path)
     configs = expand(exp)
     with ResultStore(exp.output) as store:

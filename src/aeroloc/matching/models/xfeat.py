@@ -239,12 +239,17 @@ def mutual_nn(d0, d1, min_similarity: float = 0.0) -> tuple[np.ndarray, np.ndarr
     b = np.asarray(d1, np.float32)
     a = a / (np.linalg.norm(a, axis=1, keepdims=True) + 1e-8)
     b = b / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-8)
-    sim = a @ b.T
+    keep, nn01, best01 = mutual_rows(a @ b.T, min_similarity)
+    return np.stack([keep, nn01[keep]], 1).astype(np.int64), best01[keep].astype(np.float32)
+
+
+def mutual_rows(sim: np.ndarray, min_similarity: float = -np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows of a similarity matrix whose best column has them as its maximum and lies above
+    ``min_similarity`` (sorted), each row's best column and its similarity."""
     nn01 = sim.argmax(1)
-    idx0 = np.arange(len(a))
-    best01 = sim[idx0, nn01]
+    best01 = sim[np.arange(len(sim)), nn01]
     keep = np.flatnonzero((best01 >= sim.max(0)[nn01]) & (best01 > min_similarity))
     # exact ties: a column keeps its first row, as its argmax would
     keep = keep[np.unique(nn01[keep], return_index=True)[1]]
     keep.sort()
-    return np.stack([idx0[keep], nn01[keep]], 1).astype(np.int64), best01[keep].astype(np.float32)
+    return keep, nn01, best01

@@ -162,6 +162,7 @@ class FakePipeline:
         ({"thresholds_m": [10, -1]}, "thresholds_m[1]"),
         ({"maps": [{"name": "m", "path": "data/map.tif", "tile_m": -5}]}, "maps[0].tile_m"),
         ({"maps": [{"name": "m", "path": "data/map.tif", "local_turns": "yes"}]}, "maps[0].local_turns"),
+        ({"maps": [{"name": "m", "path": "data/map.tif", "global_turns": 1}]}, "maps[0].global_turns"),
         ({"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "limit": 0}]}, "queries[0].limit"),
         (
             {"queries": [{"name": "q", "path": "data/queries.csv", "map": "m", "north_up": "yes"}]},
@@ -764,6 +765,16 @@ def test_turned_tile_maps_are_their_own_configurations_for_rerankers_only(tmp_pa
     assert turned["xfeat-lighterglue"].local_turns and "turned tiles" in turned["xfeat-lighterglue"].label()
     assert turned["xfeat-lighterglue"].key() != plain["xfeat-lighterglue"].key()
     assert not turned[None].local_turns and turned[None].key() == plain[None].key()
+
+
+def test_turned_descriptor_maps_are_their_own_configurations(tmp_path):
+    root = make_project(tmp_path)
+    plain = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc())))}
+    m = {"name": "m", "path": "data/map.tif", "global_turns": True}
+    turned = {c.reranker: c for c in expand(load_experiment(write_yaml(root, base_doc(maps=[m]), "t.yaml")))}
+    for r in (None, "xfeat-lighterglue"):  # retrieval alone uses them too
+        assert turned[r].global_turns and "turned descriptors" in turned[r].label()
+        assert turned[r].key() != plain[r].key()
 
 
 def test_a_query_resolution_makes_dense_configurations_for_rerankers_only(tmp_path):

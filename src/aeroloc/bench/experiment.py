@@ -26,7 +26,9 @@ file*: the nearest folder, starting at the YAML's own folder and going up, that 
 ``limit: n`` on a query set keeps an evenly spaced subset of n queries (:func:`sample_queries`, applied by the
 pipeline), so slow re-rankers fit a time budget while every part of the set (dates, cameras) stays represented.
 ``local_turns: true`` on a map builds its tiles' local features at eight turns too (``aeroloc build
---local-turns``): photos of unknown heading are then extracted once for their screens.
+--local-turns``): photos of unknown heading are then extracted once for their screens. ``global_turns: true``
+builds its tiles' global descriptors at eight turns too (``aeroloc build --global-turns``): a photo of unknown
+heading retrieves its place with one descriptor.
 ``north_up: true`` says the set's images are north-up (``aeroloc localize --north-up``): no rotation search.
 ``query_gsd: 5`` gives the images' ground resolution in metres per pixel (``aeroloc localize --query-gsd 5``): the
 dense structural stage is tried before the re-ranker. Both apply to configurations with a re-ranker only.
@@ -81,6 +83,7 @@ class MapSpec:
     path: Path
     tile_m: float | None = None
     local_turns: bool = False  # aeroloc build --local-turns: the tiles' local features at eight turns
+    global_turns: bool = False  # aeroloc build --global-turns: the tiles' global descriptors at eight turns
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ class Config:
     priors: str = "auto"  # load_queries(priors=...)
     seed: int = 0
     local_turns: bool = False  # the database holds turned tiles (aeroloc.matching.features.build_local)
+    global_turns: bool = False  # the database holds turned descriptors (aeroloc.retrieval.database.build_global)
 
     def key(self) -> str:
         """Stable across machines and runs: content identities of map and queries (not their paths or labels)
@@ -170,6 +174,8 @@ class Config:
             parts.append({"north_up": True})
         if self.local_turns:  # likewise
             parts.append({"local_turns": True})
+        if self.global_turns:  # likewise
+            parts.append({"global_turns": True})
         if self.priors != "auto":  # likewise
             parts.append({"priors": self.priors, "seed": int(self.seed)})
         if self.query_gsd is not None:
@@ -202,6 +208,8 @@ class Config:
             parts.append("north-up")
         if self.local_turns:
             parts.append("turned tiles")
+        if self.global_turns:
+            parts.append("turned descriptors")
         if self.query_gsd is not None:
             parts.append(f"dense @ {self.query_gsd:g} m/px")
         if self.priors != "auto":
@@ -302,16 +310,17 @@ class _Validator:
         out = []
         for i, m in enumerate(self.entries("maps")):
             where = f"maps[{i}]"
-            self.only_keys(where, m, {"name", "path", "tile_m", "local_turns"})
+            self.only_keys(where, m, {"name", "path", "tile_m", "local_turns", "global_turns"})
             name = self.text(f"{where}.name", m.get("name"))
             tile_m = m.get("tile_m")
             if tile_m is not None and (not _is_number(tile_m) or not tile_m > 0):
                 self.fail(f"{where}.tile_m", f"must be a positive number of metres (or left out), got {tile_m!r}")
-            turns = m.get("local_turns", False)
-            if not isinstance(turns, bool):
-                self.fail(f"{where}.local_turns", f"expected true or false, got {turns!r}")
+            turns = [m.get(k, False) for k in ("local_turns", "global_turns")]
+            for k, v in zip(("local_turns", "global_turns"), turns):
+                if not isinstance(v, bool):
+                    self.fail(f"{where}.{k}", f"expected true or false, got {v!r}")
             path = self.resolve(f"{where}.path", m.get("path"))
-            out.append(MapSpec(name, path, None if tile_m is None else float(tile_m), turns))
+            out.append(MapSpec(name, path, None if tile_m is None else float(tile_m), *turns))
         self.unique("maps", [m.name for m in out])
         return out
 
@@ -497,6 +506,7 @@ def expand(exp: Experiment) -> list[Config]:
                     map_path=str(m.path),
                     tile_m=m.tile_m,
                     local_turns=m.local_turns and bool(reranker),  # retrieval alone reads no local features
+                    global_turns=m.global_turns,
                     queries_name=q.name,
                     queries_path=str(q.path),
                     method=method,

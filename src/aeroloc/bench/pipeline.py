@@ -107,7 +107,7 @@ def _build(cfg, folder: Path, device, progress: bool):
     tinfo = write_tiles(cfg.map_path, folder, cfg.zoom, cfg.overlap, cfg.tile_m, progress=progress)
     t_tiles = time.perf_counter() - t0
     db = Database(folder)
-    grep = build_global(db, cfg.method, device=device, progress=progress)
+    grep = build_global(db, cfg.method, device=device, progress=progress, turns=getattr(cfg, "global_turns", False))
     if cfg.reranker:  # the cascade checks fixes on repeated ground at both places
         from aeroloc.retrieval.echoes import build_echoes
 

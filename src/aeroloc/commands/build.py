@@ -42,6 +42,13 @@ def add_arguments(p):
         "is extracted once instead of at up to eight turns (faster localization; x8 local-feature disk and build time)",
     )
     p.add_argument(
+        "--global-turns",
+        action="store_true",
+        help="the tiles' global descriptors at eight turns (45° steps) too: a photo of unknown heading retrieves its "
+        "place with one descriptor, its upright ranking interleaved with the ranking by each tile's best turn "
+        "(fewer screens a photo; x8 descriptors, their build time and the index)",
+    )
+    p.add_argument(
         "--index",
         default="auto",
         help="faiss factory string, optionally ending in ',Rerank<N>' (the N best candidates re-ranked exactly from "
@@ -95,6 +102,7 @@ def run(args) -> int:
         args.index,
         args.half,
         ray=args.ray,
+        turns=args.global_turns,
     )
     if rep.cached:
         print(f"descriptors {args.method}: cached ({rep.dim}-d, {rep.bytes_per_tile / 1024:.1f} KB/tile)")

@@ -15,6 +15,15 @@ import numpy as np
 
 _ENLARGE = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
 
+DIAGONAL = 4  # rotation indices 4-7: the quarter turn (index - 4) and 45° more, counter-clockwise
+# the turns a turned store holds (aeroloc build --local-turns / --global-turns): 0, the upright tile, is the store
+TILE_TURNS = tuple(range(1, 2 * DIAGONAL))
+
+
+def rotation_angle(rot_k: int) -> float:
+    """The counter-clockwise turn (degrees) of rotation index ``rot_k``: 0-3 quarter turns, 4-7 diagonals."""
+    return 90.0 * (rot_k % 4) + (45.0 if rot_k % 8 >= DIAGONAL else 0.0)
+
 
 def resize(image: np.ndarray, factor: float, nearest: bool = False, enlarge: str = "linear") -> np.ndarray:
     """``image`` resized by ``factor`` (each side ``round(side * factor)``, at least 1 px); ``image`` itself when

@@ -21,13 +21,15 @@ def build_database(
     ray: str | None = None,
     write_images: bool = False,
     local_turns: bool = False,
+    global_turns: bool = False,
 ):
     """The database of ``map_path`` (GeoTIFF, tile folder or XYZ folder) in ``out_dir``: tiles at ``zoom`` /
     ``overlap`` (or ``tile_m`` metres a side), ``method`` descriptors, ``rerank`` features. Every part is cached
     and resumable per shard, so calling it again costs only the checks; ``ray`` (an address, or ``"local"``)
     builds the shards on a Ray cluster with the same result. Tiles stay windows of the map unless
     ``write_images``; ``local_turns``: the re-ranker's tile features at eight turns too (photos of unknown heading
-    extracted once; x8 their disk and build time). Returns the opened
+    extracted once; x8 their disk and build time); ``global_turns``: the tiles' descriptors at eight turns too
+    (a photo of unknown heading retrieved with one descriptor; x8 descriptors and index). Returns the opened
     :class:`~aeroloc.retrieval.database.Database`."""
     from aeroloc.core.device import pick_device
     from aeroloc.maps.tiling import write_tiles
@@ -37,7 +39,7 @@ def build_database(
     device = pick_device(device)
     write_tiles(map_path, out_dir, zoom, overlap, tile_m, progress=progress, write_images=write_images)
     db = Database(out_dir)
-    build_global(db, method, device=device, progress=progress, ray=ray)
+    build_global(db, method, device=device, progress=progress, ray=ray, turns=global_turns)
     if rerank:
         from aeroloc.retrieval.echoes import build_echoes
 

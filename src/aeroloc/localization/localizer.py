@@ -138,7 +138,9 @@ class Localizer:
     def _localize(self, name: str, image: np.ndarray, top_n: int, top_k: int, priors=None) -> Localization:
         # the photo's local features, shared by every cascade of this localization (each rotation extracted once)
         query = self.reranker.query_features(image, prior_turn(priors)[1]) if self.reranker is not None else None
-        r = self.retriever(image, top_n, heading=prior_heading(priors))
+        heading = prior_heading(priors)
+        unknown = heading is None and not self.options.north_up and self.options.rotations == 1
+        r = self.retriever(image, top_n, heading=heading, turned=unknown)
         out = Localization(name, retrieved=r.tile_ids, times_ms=dict(r.times_ms))
         known = priors is not None and priors.known
         if known and self.sweep is not None and self.reranker is not None:

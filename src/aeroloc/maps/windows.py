@@ -190,4 +190,30 @@ def read_windows(m: Map, tiles: Sequence) -> Iterator[np.ndarray]:
             yield np.ascontiguousarray(block[t.row - r0 : t.row - r0 + t.height, t.col - c0 : t.col - c0 + t.width])
 
 
-__all__ = ["content_hash", "hash_cache_dir", "map_reference", "open_checked", "read_windows"]
+def turned_windows(m: Map, tiles: Sequence, angles: Sequence[float]) -> Iterator[np.ndarray]:
+    """Each tile's view at each of ``angles`` (degrees, counter-clockwise, as ``np.rot90``) in order, tile-major:
+    the map turned about the tile's centre and cut to the tile's size, i.e. the tile as a camera turned by that
+    angle sees it, its corners filled from the map around it (black beyond the map's edge, which descriptors
+    treat as no-data). A quarter turn of a square tile inside the map is exactly ``np.rot90`` of the tile. Read
+    per band of tiles (:func:`_bands`) with a margin of half the tiles' diagonal."""
+    import cv2
+
+    for band in _bands(tiles):
+        pad = max(int(np.ceil(np.hypot(tiles[i].width, tiles[i].height) / 2)) for i in band)
+        c0 = min(tiles[i].col for i in band) - pad
+        r0 = min(tiles[i].row for i in band) - pad
+        c1 = max(tiles[i].col + tiles[i].width for i in band) + pad
+        r1 = max(tiles[i].row + tiles[i].height for i in band) + pad
+        block = np.zeros((r1 - r0, c1 - c0, 3), np.uint8)
+        rc0, rr0, rc1, rr1 = max(c0, 0), max(r0, 0), min(c1, m.width), min(r1, m.height)
+        block[rr0 - r0 : rr1 - r0, rc0 - c0 : rc1 - c0] = m.read(rc0, rr0, rc1 - rc0, rr1 - rr0)[0]
+        for i in band:
+            t = tiles[i]
+            centre = (t.col - c0 + (t.width - 1) / 2.0, t.row - r0 + (t.height - 1) / 2.0)  # pixel-centre coords
+            for a in angles:
+                M = cv2.getRotationMatrix2D(centre, float(a), 1.0)
+                M[:, 2] -= (t.col - c0, t.row - r0)  # block -> the tile's own frame
+                yield cv2.warpAffine(block, M, (t.width, t.height), flags=cv2.INTER_LINEAR)
+
+
+__all__ = ["content_hash", "hash_cache_dir", "map_reference", "open_checked", "read_windows", "turned_windows"]

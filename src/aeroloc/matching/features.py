@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aeroloc.core.frames import resize, resize_to_side, turned, unturn_points
+from aeroloc.core.frames import DIAGONAL, TILE_TURNS, resize, resize_to_side, rotation_angle, turned, unturn_points
 from aeroloc.core.images import valid_mask
 from aeroloc.core.io import config_key, write_json_atomic
 from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore, ShardedFeatureStore
@@ -34,14 +34,6 @@ def _rot90_points(xy: np.ndarray, k: int, w: int, h: int) -> np.ndarray:
     return np.stack([y, h - x], 1)  # k == 3
 
 
-DIAGONAL = 4  # rotation indices 4-7: the quarter turn (index - 4) and 45° more, counter-clockwise
-
-
-def rotation_angle(rot_k: int) -> float:
-    """The counter-clockwise turn (degrees) of rotation index ``rot_k``: 0-3 quarter turns, 4-7 diagonals."""
-    return 90.0 * (rot_k % 4) + (45.0 if rot_k % 8 >= DIAGONAL else 0.0)
-
-
 def turn_gap(angle_deg: float, rot_k: int) -> float:
     """Degrees (0-180) between a heading-like turn ``angle_deg`` and rotation index ``rot_k``'s."""
     return abs((angle_deg - rotation_angle(rot_k) + 180.0) % 360.0 - 180.0)
@@ -52,9 +44,6 @@ def inverse_turn(rot_k: int) -> int:
     tile is the upright query against the tile turned by ``inverse_turn(rot_k)`` (one photo, one extraction)."""
     k = rot_k % 8
     return (4 - k) % 4 if k < DIAGONAL else DIAGONAL + (3 - (k - DIAGONAL)) % 4
-
-
-TILE_TURNS = tuple(range(1, 2 * DIAGONAL))  # the turns a turned tile store holds (0, the upright tile, is the store)
 
 
 def turned_name(tile_id: str, rot_k: int) -> str:

@@ -7,6 +7,7 @@ Layout::
     DB/global/<method>-<key>/                model.pt (fitted state), shards/NNNNN.npy + .done (the build's
                                              shards, aeroloc.retrieval.shards), descriptors.npy, meta.json,
                                              index.faiss [+ index.faiss.ivfdata]
+    DB/global/<method>-<key>/turns/          the same for every tile at the seven other turns (--global-turns)
     DB/local/<reranker>-<key>/shards/NNNNN.h5 + .done   (aeroloc.matching.store; features.h5 in old databases)
     DB/db.json                               which method/reranker folders exist, the default method
 """
@@ -28,6 +29,7 @@ from aeroloc.retrieval.shards import SHARD_TILES, TORCH_THREADS, torch_threads
 from aeroloc.retrieval.store import DescriptorStore
 
 DB_JSON = "db.json"
+TURNS_DIR = "turns"  # a method's turned descriptors, beside its upright ones
 
 
 def _progress(total, desc, enabled, initial=0):
@@ -107,6 +109,24 @@ class Database:
         _, gdir = self.global_dir(method)
         return DescriptorStore.open_complete(gdir), load_index(gdir / "index.faiss")
 
+    def load_turned(self, method: str | None = None):
+        """The Faiss index of the tiles at the seven other turns (``aeroloc build --global-turns``; row ``i * 7 +
+        k - 1`` is tile i at rotation index k), or None when the method has none (or it is unfinished)."""
+        from aeroloc.retrieval.index import load_index
+
+        _, gdir = self.global_dir(method)
+        folder = gdir / TURNS_DIR
+        return load_index(folder / "index.faiss") if _complete(folder) else None
+
+
+def _complete(folder: Path) -> bool:
+    """A descriptor folder whose store and index are both finished."""
+    try:
+        store = DescriptorStore.open_complete(folder)
+    except AerolocError:
+        return False
+    return store.complete and (folder / "index.faiss").is_file()
+
 
 @dataclass(frozen=True)
 class GlobalBuildReport:
@@ -145,20 +165,26 @@ def build_global(
     progress: bool = True,
     ray: str | None = None,
     shard_size: int = SHARD_TILES,
+    turns: bool = False,
 ) -> GlobalBuildReport:
     """Descriptors of every tile + a Faiss index, cached and resumable per shard. Returns timings and sizes.
 
     The shards run in this process, or on the Ray cluster at ``ray`` (``"local"``: a new local one) with
     ``workers`` model actors; both run the same shard code on CPU, so the results are identical. ``device`` and
-    ``half`` are kept for the API; the shard build describes on CPU (batches of ``batch_size``)."""
-    from aeroloc.retrieval.global_shards import GlobalTask
+    ``half`` are kept for the API; the shard build describes on CPU (batches of ``batch_size``). ``turns``: every
+    tile also described at the seven other turns, with its own index (:meth:`Database.load_turned`; 8x the
+    descriptors and their time), so that a photo of unknown heading retrieves its place with one descriptor."""
+    from aeroloc.retrieval.global_shards import GlobalTask, TurnedGlobalTask
     from aeroloc.retrieval.models import build_method
     from aeroloc.retrieval.shards import ShardJob
 
     conf = dict(conf or {})
     key, gdir, entry = _global_entry(db, method, conf, weights, index_factory)
     cached = _cached_build(db, method, key, gdir, entry)
+    turned = TurnedGlobalTask(method, conf, str(weights) if weights else None, gdir / TURNS_DIR, batch_size)
     if cached is not None:
+        if turns:
+            _build_turned(db, turned, index_factory, progress, ray, workers, shard_size)
         return cached
     t_start = time.perf_counter()
     model = build_method(method, conf, weights, device="cpu")
@@ -169,6 +195,8 @@ def build_global(
     store = _merge_store(db, gdir, job, model.dim, {"method": method, "conf": conf, "key": key}, t_desc, t_fit)
     t_index, used = _build_index(store, gdir / "index.faiss", index_factory)
     _register(db, method, {**entry, "index_used": used})
+    if turns:
+        _build_turned(db, turned, index_factory, progress, ray, workers, shard_size)
     return _report(
         db,
         method,
@@ -202,12 +230,31 @@ def run_shards(db: Database, job, desc: str, progress: bool, ray: str | None, wo
     return n_todo, time.perf_counter() - t0
 
 
-def _merge_store(db: Database, gdir: Path, job, dim: int, meta: dict, t_desc: float, t_fit: float):
+def _build_turned(db: Database, task, index_factory: str, progress: bool, ray, workers, shard_size: int) -> None:
+    """The turned descriptors (``task``, a TurnedGlobalTask whose folder is the method's ``turns/``) and their
+    index, unless complete: the same shards, resume and Ray path as the upright build, the same vocabulary."""
+    from aeroloc.core.frames import TILE_TURNS
+    from aeroloc.retrieval.shards import ShardJob
+
+    if _complete(task.folder):
+        return
+    job = ShardJob(str(db.folder), task, shard_size)
+    _, t_desc = run_shards(db, job, f"turned descriptors {task.method}", progress, ray, workers)
+    dim = int(np.load(next((task.folder / "shards").glob("*.npy")), mmap_mode="r").shape[1])
+    meta = {"method": task.method, "turns": list(TILE_TURNS), "tiles": len(db.tiles)}
+    store = _merge_store(db, task.folder, job, dim, meta, t_desc, 0.0, rows_per_tile=len(TILE_TURNS))
+    _build_index(store, task.folder / "index.faiss", index_factory)
+
+
+def _merge_store(
+    db: Database, gdir: Path, job, dim: int, meta: dict, t_desc: float, t_fit: float, rows_per_tile: int = 1
+):
     """The complete shards concatenated into the method's DescriptorStore, marked complete."""
     from aeroloc.retrieval.global_shards import merge
 
-    merge(gdir, job.shards(len(db.tiles)), len(db.tiles), dim)
-    store = DescriptorStore(gdir, len(db.tiles), dim, meta)
+    n = len(db.tiles) * rows_per_tile
+    merge(gdir, job.shards(len(db.tiles)), n, dim, rows_per_tile)
+    store = DescriptorStore(gdir, n, dim, meta)
     store.meta = {**meta, "extract_s": t_desc, "fit_s": t_fit, "n": store.n, "dim": dim, "dtype": "float16"}
     store.meta["complete"] = True
     write_json_atomic(gdir / "meta.json", store.meta)

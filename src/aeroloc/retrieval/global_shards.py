@@ -33,16 +33,38 @@ class GlobalTask:
         from aeroloc.retrieval.models import build_method
 
         model = build_method(self.method, self.conf, self.weights, device="cpu")
-        state = self.folder / "model.pt"
+        state = self.state_path()
         if state.is_file():
             model.load_state_dict(torch.load(state, map_location="cpu", weights_only=True), strict=True)
         return model.eval()
+
+    def state_path(self) -> Path:
+        """The method's fitted state (its vocabulary), when it has one."""
+        return self.folder / "model.pt"
 
     def run(self, model, shard: Shard, images: list[np.ndarray], ids: list[str]) -> None:
         out = describe(model, images, self.batch_size)
         path = self.folder / "shards" / f"{shard.name}.npy"
         write_shard_file(path, lambda tmp: _save_npy(tmp, out))
         mark_complete(self.folder, shard, {"dim": int(out.shape[1])})
+
+
+@dataclass(frozen=True)
+class TurnedGlobalTask(GlobalTask):
+    """The shard's tiles described at the seven other turns (:data:`~aeroloc.core.frames.TILE_TURNS`), rows
+    tile-major (tile i at turn k: row ``i * 7 + k - 1``), each view the map turned about the tile's centre
+    (:func:`~aeroloc.maps.windows.turned_windows`): a photo of unknown heading is then searched upright against
+    every (tile, turn) with its one descriptor (aeroloc.retrieval.retriever)."""
+
+    def state_path(self) -> Path:
+        return self.folder.parent / "model.pt"  # the upright descriptors' folder: one vocabulary for both
+
+    def read(self, source, shard: Shard) -> list[np.ndarray]:
+        from aeroloc.core.frames import TILE_TURNS, rotation_angle
+        from aeroloc.maps.windows import turned_windows
+
+        angles = [rotation_angle(k) for k in TILE_TURNS]
+        return list(turned_windows(source.map(), source.tiles[shard.start : shard.stop], angles))
 
 
 def _save_npy(tmp: Path, arr: np.ndarray) -> None:
@@ -62,8 +84,9 @@ def describe(model, images: list[np.ndarray], batch_size: int) -> np.ndarray:
     return np.concatenate(rows) if rows else np.zeros((0, model.dim), np.float16)
 
 
-def merge(folder: Path, shards: list[Shard], n: int, dim: int) -> Path:
-    """Concatenate the complete shards into ``folder/descriptors.npy`` (atomically); returns its path."""
+def merge(folder: Path, shards: list[Shard], n: int, dim: int, rows_per_tile: int = 1) -> Path:
+    """Concatenate the complete shards into ``folder/descriptors.npy`` (atomically; ``n`` rows, ``rows_per_tile``
+    a tile); returns its path."""
     dest = folder / "descriptors.npy"
     with atomic_path(dest) as tmp, open(tmp, "wb") as f:
         np.lib.format.write_array_header_1_0(
@@ -73,10 +96,11 @@ def merge(folder: Path, shards: list[Shard], n: int, dim: int) -> Path:
             if not is_complete(folder, shard):
                 raise AerolocError(f"{folder}: shard {shard.name} is not complete; rerun 'aeroloc build' to resume")
             arr = np.load(folder / "shards" / f"{shard.name}.npy")
-            if arr.shape != (len(shard), dim) or arr.dtype != np.float16:
-                raise AerolocError(f"{folder}: shard {shard.name} has shape {arr.shape}, expected {(len(shard), dim)}")
+            want = (len(shard) * rows_per_tile, dim)
+            if arr.shape != want or arr.dtype != np.float16:
+                raise AerolocError(f"{folder}: shard {shard.name} has shape {arr.shape}, expected {want}")
             f.write(np.ascontiguousarray(arr).tobytes())
     return dest
 
 
-__all__ = ["GlobalTask", "describe", "merge"]
+__all__ = ["GlobalTask", "TurnedGlobalTask", "describe", "merge"]

@@ -16,6 +16,13 @@ merged did no better (levir-tx/any rough 0.63 / 0.90, szada-hu/any 0.78 / 0.94) 
 time (the turned canvas has up to twice the pixels); black corners instead of mirrored lost NAIP dev-rotated
 0.875 -> 0.80 at top 20; the turned view shrunk to the query's own pixel count lost 0.90 -> 0.875.
 
+Turned tiles (``aeroloc build --global-turns``): every tile also described at the seven other turns, so a photo
+of unknown heading (``turned``) searches them with its one upright descriptor; the upright ranking and the
+ranking by each tile's best turn are interleaved (upright 1st, turned 1st, upright 2nd, ...): a north-up photo
+keeps its upright top-1 first (over all 8 x N entries the turned views of other places outscore its true tile:
+levir-tx/north recall@3 0.95 -> 0.63 by the turned ranking alone), a turned photo gets its turned ranking's
+best (levir-tx/any recall@3 0.55 -> 0.73, szada-hu/any 0.56 -> 0.92 by the turned ranking).
+
 Query scale: tiles are cut to about a query's footprint (that is how zoom is chosen), so a query much larger in
 pixels than a tile is finer than the map. It is shrunk to ``query_scale`` x the tile side first (default 1.5).
 Measured with effnet-vlad: Toledo's 1200 px drone photos against 400 px tiles, VPR R@1/3 0.51/0.61 unshrunk,
@@ -27,10 +34,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import zip_longest
 
 import numpy as np
 
 from aeroloc.core.errors import AerolocError
+from aeroloc.core.frames import TILE_TURNS
 from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.descriptors import describe_image
 from aeroloc.retrieval.index import search
@@ -121,6 +130,7 @@ class Retriever:
         self.max_query_side = query_scale * max(max(t.width, t.height) for t in db.tiles) if query_scale else None
         self.model, self.store, self.index, self.entry = db.load_method(method, device)
         self.method = method or db.meta.get("default_method")
+        self._turned_index = False  # not loaded yet (None: the database has no turned descriptors)
         self.device = device
 
     def shrink(self, image: np.ndarray) -> np.ndarray:
@@ -188,6 +198,33 @@ class Retriever:
             out.append(Retrieval([tiles[j].id for j in order], [float(best[j]) for j in order], {"search": t_search}))
         return out
 
+    @property
+    def turned_index(self):
+        """The index of the tiles at the seven other turns (:meth:`Database.load_turned`), or None."""
+        if self._turned_index is False:
+            self._turned_index = self.db.load_turned(self.method)
+        return self._turned_index
+
+    def fuse_turned(self, desc: np.ndarray, upright: Retrieval, top_n: int) -> Retrieval:
+        """``upright`` (the top-N of the 1 x dim ``desc``) interleaved with the top-N by each tile's best score
+        over its eight turns (see the module docstring), without repeats, cut at N; each tile's score is its best.
+        The turned index's top 7N rows hold the 7 turns' top-N tiles (a tile has 7 rows), and a tile's best
+        over the upright and the turned lists is exact for the merged top-N, as in :meth:`rank`."""
+        t0 = time.perf_counter()
+        n_turns = len(TILE_TURNS)
+        scores, rows = search(self.turned_index, desc, top_n * n_turns)
+        pos = self.db.position
+        upright_pos = [pos[t] for t in upright.tile_ids]
+        best = dict(zip(upright_pos, upright.scores))
+        for r, v in zip(rows[0].tolist(), scores[0].tolist()):
+            if r >= 0 and v > best.get(r // n_turns, -np.inf):
+                best[r // n_turns] = v
+        by_turns = sorted(best, key=lambda j: (-best[j], j))[:top_n]
+        fused = list(dict.fromkeys(j for pair in zip_longest(upright_pos, by_turns) for j in pair if j is not None))
+        fused = fused[:top_n]
+        ms = upright.times_ms.get("search", 0.0) + (time.perf_counter() - t0) * 1000
+        return Retrieval([self.db.tiles[j].id for j in fused], [float(best[j]) for j in fused], {"search": ms})
+
     def __call__(
         self,
         image: np.ndarray,
@@ -195,10 +232,14 @@ class Retriever:
         rotations: int | None = None,
         heading: tuple[float, float] | None = None,
         mirror: bool = False,
+        turned: bool = False,
     ) -> Retrieval:
         """Top-N tiles for one query; ``heading`` (degrees clockwise from north, tolerance) and ``mirror`` as in
-        :meth:`describe`."""
+        :meth:`describe`. ``turned`` (a photo of unknown heading, described upright): fused with the database's
+        turned tiles when it has them (:meth:`fuse_turned`)."""
         desc, t_desc = self.describe(image, rotations, heading, mirror)
         r = self.rank([desc], top_n)[0]
+        if turned and len(desc) == 1 and self.turned_index is not None:
+            r = self.fuse_turned(desc, r, top_n)
         r.times_ms = {"descriptor": t_desc, **r.times_ms}
         return r

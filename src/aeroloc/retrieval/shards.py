@@ -60,7 +60,8 @@ def shard_of(position: int, size: int = SHARD_TILES) -> int:
 class ShardTask(Protocol):
     """One kind of per-shard output (global descriptors, local features). ``open`` loads the model once per
     process; ``run`` describes the shard's images (tile ``ids``) and writes the shard and its marker; ``folder``
-    holds the shard files."""
+    holds the shard files. A task with a ``read(source, shard)`` method reads its own images (e.g. the tiles'
+    turned views); otherwise they are the shard's tiles."""
 
     folder: Path
 
@@ -145,7 +146,8 @@ def run_shard(job: ShardJob, source, state, shard: Shard) -> int:
     """Read the shard's windows, run the task on them, write its files and marker; returns its tile count."""
     if is_complete(job.task.folder, shard):
         return 0
-    images = list(source.images(shard.start, shard.stop))
+    read = getattr(job.task, "read", None)  # a task that reads its own pixels (e.g. turned views)
+    images = read(source, shard) if read is not None else list(source.images(shard.start, shard.stop))
     job.task.run(state, shard, images, [t.id for t in source.tiles[shard.start : shard.stop]])
     return len(shard)
 

@@ -1,0 +1,106 @@
+"""Turned descriptors (``aeroloc build --global-turns``): every tile also described at the seven other turns, a
+photo of unknown heading searched upright against them, its upright and turned rankings interleaved. On real NAIP
+tiles (a copy of ``naip_db``)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from aeroloc.core.frames import TILE_TURNS, rotation_angle
+from aeroloc.localization.localizer import Localizer
+from aeroloc.localization.options import LocalizeOptions
+from aeroloc.maps.windows import turned_windows
+from aeroloc.retrieval.database import TURNS_DIR, Database, build_global
+from aeroloc.retrieval.descriptors import describe_image
+from aeroloc.retrieval.retriever import Retriever
+
+METHOD = "xfeat-vlad"  # what naip_db was built with
+
+
+@pytest.fixture(scope="module")
+def turned_db(naip_db, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("turned-descriptors") / "db"
+    shutil.copytree(naip_db, folder)
+    db = Database(folder)
+    build_global(db, METHOD, progress=False, turns=True)
+    return db
+
+
+def _turns_dir(db):
+    return db.global_dir(METHOD)[1] / TURNS_DIR
+
+
+def test_a_quarter_turned_window_is_the_tile_turned_and_every_view_has_the_tiles_size(naip_db):
+    db = Database(naip_db)
+    m = db.source.map()
+    inside = [t for t in db.tiles if t.col > 0 and t.row > 0 and t.col + t.width < m.width and t.row + t.height < m.height]
+    assert inside
+    for t in inside[:3]:
+        views = list(turned_windows(m, [t], [rotation_angle(k) for k in range(8)]))
+        up = db.tile_image(t.id)
+        for k in range(4):  # exact: the same pixels, turned
+            assert np.array_equal(views[k], np.rot90(up, k)), (t.id, k)
+        assert all(v.shape == up.shape for v in views)
+    corner = db.tiles[0]  # at the map's top-left: a diagonal view reaches beyond the map, which reads black
+    diag = next(turned_windows(m, [corner], [45.0]))
+    assert (diag.reshape(-1, 3).max(1) == 0).any()
+
+
+def test_the_turned_store_holds_every_tile_at_the_seven_turns_in_order(turned_db):
+    store = np.load(_turns_dir(turned_db) / "descriptors.npy")
+    n = len(turned_db.tiles)
+    assert store.shape[0] == n * len(TILE_TURNS)
+    index = turned_db.load_turned(METHOD)
+    assert index is not None and index.ntotal == n * len(TILE_TURNS)
+    ret = Retriever(turned_db, METHOD)
+    m = turned_db.source.map()
+    for i, k in ((3, 1), (17, 5), (n - 1, 7)):  # row i * 7 + k - 1 is tile i at rotation index k
+        view = next(turned_windows(m, [turned_db.tiles[i]], [rotation_angle(k)]))
+        d = describe_image(ret.model, view, "cpu")[0][0]
+        row = store[i * len(TILE_TURNS) + k - 1].astype(np.float32)
+        assert float(row @ d) > 0.99, (i, k)
+
+
+def test_a_finished_turned_build_is_reused_and_an_interrupted_one_resumes_to_the_same_bytes(turned_db):
+    folder = _turns_dir(turned_db)
+    before = (folder / "descriptors.npy").read_bytes()
+    stamp = (folder / "descriptors.npy").stat().st_mtime_ns
+    build_global(turned_db, METHOD, progress=False, turns=True)
+    assert (folder / "descriptors.npy").stat().st_mtime_ns == stamp  # nothing redone
+    # interrupted: the store never finished and its last shard never written
+    (folder / "meta.json").unlink()
+    (folder / "descriptors.npy").unlink()
+    shard = sorted((folder / "shards").glob("*.npy"))[-1]
+    shard.unlink()
+    shard.with_suffix(".done").unlink()
+    assert turned_db.load_turned(METHOD) is None  # an unfinished store is not searched
+    build_global(turned_db, METHOD, progress=False, turns=True)
+    assert (folder / "descriptors.npy").read_bytes() == before
+
+
+def test_a_turned_copy_of_a_tile_is_retrieved_and_the_upright_top_1_stays_first(turned_db):
+    ret = Retriever(turned_db, METHOD)
+    m = turned_db.source.map()
+    t = turned_db.tiles[17]
+    photo = next(turned_windows(m, [t], [rotation_angle(5)]))  # the tile as a camera turned 135° sees it
+    upright = ret(photo, 10)
+    fused = ret(photo, 10, turned=True)
+    assert fused.tile_ids[0] == upright.tile_ids[0]  # a north-up photo's best upright match keeps its place
+    assert t.id in fused.tile_ids[:2]
+    assert len(fused.tile_ids) == len(set(fused.tile_ids)) == 10
+    assert fused.scores[fused.tile_ids.index(t.id)] > 0.99  # its turned view is the photo
+    plain = Retriever(Database(turned_db.folder), METHOD)
+    assert plain(photo, 10).tile_ids == upright.tile_ids  # ``turned`` off: the upright ranking as before
+
+
+def test_the_localizer_fuses_only_when_the_heading_is_unknown(turned_db):
+    m = turned_db.source.map()
+    photo = next(turned_windows(m, [turned_db.tiles[17]], [rotation_angle(5)]))
+    ret = Retriever(turned_db, METHOD)
+    unknown = Localizer(turned_db, LocalizeOptions(method=METHOD, rerank=None, top_n=10))("p", photo)
+    assert unknown.retrieved == ret(photo, 10, turned=True).tile_ids
+    north = Localizer(turned_db, LocalizeOptions(method=METHOD, rerank=None, top_n=10, north_up=True))("p", photo)
+    assert north.retrieved == ret(photo, 10).tile_ids

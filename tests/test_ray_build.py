@@ -1,6 +1,7 @@
-"""Sharded builds on a real local Ray cluster (started once for the module, 2 CPUs, no mock): stores and index
-identical byte for byte to the in-process build, a build interrupted after some shards resumes on Ray to the
-same bytes, a full disk leaves no shard taken as complete, an address that does not answer fails in seconds."""
+"""Sharded builds on a real local Ray cluster (started once for the module, 2 CPUs, no mock): stores and index (the
+turned descriptors too) identical byte for byte to the in-process build, a build interrupted after some shards
+resumes on Ray to the same bytes, a full disk leaves no shard taken as complete, an address that does not answer
+fails in seconds."""
 
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ def tiles_db(tmp_path_factory, naip_map):
 
 def _build(folder, ray_address=None):
     db = Database(folder)
-    build_global(db, METHOD, batch_size=8, progress=False, ray=ray_address, shard_size=SHARD)
+    # with the turned descriptors (--global-turns): their shards read turned map windows on the workers
+    build_global(db, METHOD, batch_size=8, progress=False, ray=ray_address, shard_size=SHARD, turns=True)
     build_local(db, RERANK, progress=False, ray=ray_address, shard_size=SHARD)
 
 
@@ -64,6 +66,7 @@ def test_ray_build_is_identical_to_the_in_process_build(cluster, tiles_db, in_pr
     _build(folder, "local")  # the module's cluster, 2 actors
     got, want = _store_files(folder), _store_files(in_process)
     assert set(got) == set(want) and len(got) >= 10  # model.pt, 3+3 shards + markers, descriptors, index
+    assert any(k.parts[-2:] == ("turns", "descriptors.npy") for k in got)
     assert [k for k in got if got[k] != want[k]] == []
     from aeroloc.retrieval.retriever import Retriever
 

@@ -21,11 +21,22 @@ METHOD = "xfeat-vlad"  # what naip_db was built with
 
 
 @pytest.fixture(scope="module")
-def turned_db(naip_db, tmp_path_factory):
+def turned_db(naip_db, naip_map, tmp_path_factory):
+    """naip_db copied, then ``aeroloc build --global-turns`` on it (the upright descriptors are reused)."""
+    import contextlib
+    import io
+
+    from aeroloc.cli import main
+
     folder = tmp_path_factory.mktemp("turned-descriptors") / "db"
     shutil.copytree(naip_db, folder)
+    out = io.StringIO()
+    argv = ["build", str(naip_map), "--zoom", "1", "--overlap", "0.5", "--out", str(folder), "--method", METHOD]
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*argv, "--global-turns", "--device", "cpu"]) == 0
     db = Database(folder)
-    build_global(db, METHOD, progress=False, turns=True)
+    assert f"turned descriptors {METHOD}: {len(db.tiles) * 7} ({len(db.tiles)} tiles x 7 turns)" in out.getvalue()
+    assert f"descriptors {METHOD}: cached" in out.getvalue()
     return db
 
 
@@ -36,7 +47,9 @@ def _turns_dir(db):
 def test_a_quarter_turned_window_is_the_tile_turned_and_every_view_has_the_tiles_size(naip_db):
     db = Database(naip_db)
     m = db.source.map()
-    inside = [t for t in db.tiles if t.col > 0 and t.row > 0 and t.col + t.width < m.width and t.row + t.height < m.height]
+    inside = [
+        t for t in db.tiles if t.col > 0 and t.row > 0 and t.col + t.width < m.width and t.row + t.height < m.height
+    ]
     assert inside
     for t in inside[:3]:
         views = list(turned_windows(m, [t], [rotation_angle(k) for k in range(8)]))

@@ -184,7 +184,7 @@ def test_a_runner_up_tile_is_realigned_when_the_best_one_fails(levir_db, data_di
     results = []
     for runners_up in (2, 0):
         loc = Localizer(levir_db, LocalizeOptions(rerank_overrides={"refine_runners_up": runners_up}))
-        loc.retriever = lambda image, top_n, rotations=None, heading=None, mirror=False: Retrieval(
+        loc.retriever = lambda image, top_n, rotations=None, heading=None, mirror=False, turned=False: Retrieval(
             list(RETRIEVED_2_04), [0.0] * 20, {}
         )
         results.append(loc(q.name, image, priors=q.priors))

@@ -83,7 +83,7 @@ def test_a_build_interrupted_after_some_shards_resumes_on_ray_to_the_same_bytes(
     folder = tmp_path / "db"
     shutil.copytree(tiles_db, folder)
     db = Database(folder)
-    build_global(db, METHOD, batch_size=8, progress=False, shard_size=SHARD)
+    build_global(db, METHOD, batch_size=8, progress=False, shard_size=SHARD, turns=True)
     real, ran = LocalTask.run, []
 
     def killed_after_one_shard(self, state, shard, images, ids):

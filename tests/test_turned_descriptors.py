@@ -117,3 +117,23 @@ def test_the_localizer_fuses_only_when_the_heading_is_unknown(turned_db):
     assert unknown.retrieved == ret(photo, 10, turned=True).tile_ids
     north = Localizer(turned_db, LocalizeOptions(method=METHOD, rerank=None, top_n=10, north_up=True))("p", photo)
     assert north.retrieved == ret(photo, 10).tile_ids
+
+
+def test_aeroloc_retrieve_interleaves_the_turned_ranking_unless_north_up(turned_db, tmp_path):
+    import csv
+
+    import cv2
+
+    from aeroloc.cli import main
+
+    t = turned_db.tiles[17]
+    photo = next(turned_windows(turned_db.source.map(), [t], [rotation_angle(5)]))
+    cv2.imwrite(str(tmp_path / "p.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
+    (tmp_path / "queries.csv").write_text("name,lat,lon\np.png,0,0\n")
+    ret = Retriever(turned_db, METHOD)
+    for flags, want in (([], ret(photo, 10, turned=True)), (["--north-up"], ret(photo, 10))):
+        out = tmp_path / f"r{len(flags)}.csv"
+        assert main(["retrieve", str(turned_db.folder), str(tmp_path / "queries.csv"), "--out", str(out)] + flags) == 0
+        row = next(csv.DictReader(out.open()))
+        assert row["top_tiles"].split(";") == want.tile_ids
+    assert t.id in ret(photo, 10, turned=True).tile_ids[:2]

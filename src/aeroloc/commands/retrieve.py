@@ -19,6 +19,12 @@ def add_arguments(p):
         help="search the query at K headings (360/K steps) and keep each tile's best score; for queries "
         "of unknown heading (default %(default)s: upright only; 4 or 8 cost K descriptors)",
     )
+    p.add_argument(
+        "--north-up",
+        action="store_true",
+        help="the queries are north-up: upright ranking only, even when the database holds turned descriptors "
+        "(aeroloc build --global-turns; otherwise a query's upright and turned rankings are interleaved)",
+    )
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--device", default="auto")
     add_trust_argument(p)
@@ -42,13 +48,16 @@ def run(args) -> int:
     db = Database(args.db)
     queries = load_queries(args.queries)
     retriever = Retriever(db, args.method, pick_device(args.device), args.rotations)
+    turned = not args.north_up and args.rotations == 1 and retriever.turned_index is not None
     rows, batch = [], []
 
     def flush():
         # queries are searched in batches: an exact scan of many tiles is shared by the whole batch
         if not batch:
             return
-        for (q, _desc, t_desc), r in zip(batch, retriever.rank([d for _, d, _ in batch], args.top_n)):
+        for (q, desc, t_desc), r in zip(batch, retriever.rank([d for _, d, _ in batch], args.top_n)):
+            if turned:  # heading unknown: with the turned tiles too, as aeroloc localize does
+                r = retriever.fuse_turned(desc, r, args.top_n)
             r.times_ms["descriptor"] = t_desc
             rows.append(_row(db, q, r))
         batch.clear()

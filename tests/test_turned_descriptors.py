@@ -15,7 +15,7 @@ from aeroloc.localization.options import LocalizeOptions
 from aeroloc.maps.windows import turned_windows
 from aeroloc.retrieval.database import TURNS_DIR, Database, build_global
 from aeroloc.retrieval.descriptors import describe_image
-from aeroloc.retrieval.retriever import Retriever
+from aeroloc.retrieval.retriever import TURNED_LEAD, Retriever
 
 METHOD = "xfeat-vlad"  # what naip_db was built with
 
@@ -103,8 +103,14 @@ def test_a_turned_copy_of_a_tile_is_retrieved_and_the_upright_top_1_stays_first(
     fused = ret(photo, 10, turned=True)
     assert fused.tile_ids[0] == upright.tile_ids[0]  # a north-up photo's best upright match keeps its place
     assert t.id in fused.tile_ids[:2]
-    assert len(fused.tile_ids) == len(set(fused.tile_ids)) == 10
     assert fused.scores[fused.tile_ids.index(t.id)] > 0.99  # its turned view is the photo
+    # the union of both top-10s, no repeats: the turned tiles add candidates and never drop an upright one,
+    # and only the turned ranking's lead comes before the upright top-10's last tile
+    assert len(fused.tile_ids) == len(set(fused.tile_ids)) <= 20 and set(upright.tile_ids) <= set(fused.tile_ids)
+    last_upright = max(fused.tile_ids.index(u) for u in upright.tile_ids)
+    assert sum(f not in upright.tile_ids for f in fused.tile_ids[:last_upright]) <= TURNED_LEAD
+    desc, _ = ret.describe(photo)
+    assert ret.fuse_turned(desc, upright, 10).tile_ids == fused.tile_ids[:10]  # cut at N: its first N
     plain = Retriever(Database(turned_db.folder), METHOD)
     assert plain(photo, 10).tile_ids == upright.tile_ids  # ``turned`` off: the upright ranking as before
 
@@ -131,7 +137,8 @@ def test_aeroloc_retrieve_interleaves_the_turned_ranking_unless_north_up(turned_
     cv2.imwrite(str(tmp_path / "p.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
     (tmp_path / "queries.csv").write_text("name,lat,lon\np.png,0,0\n")
     ret = Retriever(turned_db, METHOD)
-    for flags, want in (([], ret(photo, 10, turned=True)), (["--north-up"], ret(photo, 10))):
+    desc, _ = ret.describe(photo)
+    for flags, want in (([], ret.fuse_turned(desc, ret(photo, 10), 10)), (["--north-up"], ret(photo, 10))):
         out = tmp_path / f"r{len(flags)}.csv"
         assert main(["retrieve", str(turned_db.folder), str(tmp_path / "queries.csv"), "--out", str(out)] + flags) == 0
         row = next(csv.DictReader(out.open()))

@@ -17,11 +17,12 @@ time (the turned canvas has up to twice the pixels); black corners instead of mi
 0.875 -> 0.80 at top 20; the turned view shrunk to the query's own pixel count lost 0.90 -> 0.875.
 
 Turned tiles (``aeroloc build --global-turns``): every tile also described at the seven other turns, so a photo
-of unknown heading (``turned``) searches them with its one upright descriptor; the upright ranking and the
-ranking by each tile's best turn are interleaved (upright 1st, turned 1st, upright 2nd, ...): a north-up photo
-keeps its upright top-1 first (over all 8 x N entries the turned views of other places outscore its true tile:
-levir-tx/north recall@3 0.95 -> 0.63 by the turned ranking alone), a turned photo gets its turned ranking's
-best (levir-tx/any recall@3 0.55 -> 0.73, szada-hu/any 0.56 -> 0.92 by the turned ranking).
+of unknown heading (``turned``) searches them with its one upright descriptor. The upright top-N is interleaved
+with the best ``TURNED_LEAD`` of the ranking by each tile's best turn (upright 1st, turned 1st, upright 2nd,
+...), the rest of the turned top-N behind it: a north-up photo keeps its upright top-1 first and its upright
+order (over all 8 x N entries the turned views of other places outscore its true tile: levir-tx/north recall@3
+0.95 -> 0.63 by the turned ranking alone), a turned photo gets its turned ranking's best near the front
+(levir-tx/any recall@3 0.55 -> 0.73, szada-hu/any 0.56 -> 0.92 by the turned ranking).
 
 Query scale: tiles are cut to about a query's footprint (that is how zoom is chosen), so a query much larger in
 pixels than a tile is finer than the map. It is shrunk to ``query_scale`` x the tile side first (default 1.5).
@@ -45,6 +46,13 @@ from aeroloc.retrieval.descriptors import describe_image
 from aeroloc.retrieval.index import search
 
 QUERY_SCALE = 1.5  # longest query side, in tile sides (see the module docstring)
+# the turned ranking's best few interleaved with the upright top-N (the rest behind it): its recall@5 on the
+# photos of unknown heading (levir-tx/any 0.83, szada-hu/any 0.97, NAIP dev-rotated 0.70) is most of its
+# recall@20 (0.95, 1.00, 0.98). Interleaving all of it pushed a weak frame's true tile back: the first frame
+# after a NAIP flight's outage, true tile at upright rank 16, went to rank 26, behind a tile the turned ranking
+# put 9th, which took its place among the weak screens re-tried at their own angle; the frame was not placed
+# and the track took 51 frames to recover instead of 4 (telemetry flight, seed 4; no-metadata seed 2: 4 -> 7)
+TURNED_LEAD = 5
 
 
 @dataclass
@@ -205,11 +213,12 @@ class Retriever:
             self._turned_index = self.db.load_turned(self.method)
         return self._turned_index
 
-    def fuse_turned(self, desc: np.ndarray, upright: Retrieval, top_n: int) -> Retrieval:
+    def fuse_turned(self, desc: np.ndarray, upright: Retrieval, top_n: int, cut: bool = True) -> Retrieval:
         """``upright`` (the top-N of the 1 x dim ``desc``) interleaved with the top-N by each tile's best score
-        over its eight turns (see the module docstring), without repeats, cut at N; each tile's score is its best.
-        The turned index's top 7N rows hold the 7 turns' top-N tiles (a tile has 7 rows), and a tile's best
-        over the upright and the turned lists is exact for the merged top-N, as in :meth:`rank`."""
+        over its eight turns (see the module docstring), without repeats; cut at N, or (``cut`` False) the whole
+        union, so that every tile of the upright top-N is still there; each tile's score is its best. The
+        turned index's top 7N rows hold the 7 turns' top-N tiles (a tile has 7 rows), and a tile's best over
+        the upright and the turned lists is exact for the merged top-N, as in :meth:`rank`."""
         t0 = time.perf_counter()
         n_turns = len(TILE_TURNS)
         scores, rows = search(self.turned_index, desc, top_n * n_turns)
@@ -220,8 +229,10 @@ class Retriever:
             if r >= 0 and v > best.get(r // n_turns, -np.inf):
                 best[r // n_turns] = v
         by_turns = sorted(best, key=lambda j: (-best[j], j))[:top_n]
-        fused = list(dict.fromkeys(j for pair in zip_longest(upright_pos, by_turns) for j in pair if j is not None))
-        fused = fused[:top_n]
+        lead = by_turns[:TURNED_LEAD]
+        fused = list(dict.fromkeys(j for pair in zip_longest(upright_pos, lead) for j in pair if j is not None))
+        fused = list(dict.fromkeys(fused + by_turns))
+        fused = fused[:top_n] if cut else fused
         ms = upright.times_ms.get("search", 0.0) + (time.perf_counter() - t0) * 1000
         return Retrieval([self.db.tiles[j].id for j in fused], [float(best[j]) for j in fused], {"search": ms})
 
@@ -236,10 +247,11 @@ class Retriever:
     ) -> Retrieval:
         """Top-N tiles for one query; ``heading`` (degrees clockwise from north, tolerance) and ``mirror`` as in
         :meth:`describe`. ``turned`` (a photo of unknown heading, described upright): fused with the database's
-        turned tiles when it has them (:meth:`fuse_turned`)."""
+        turned tiles when it has them, the union of both top-N lists (:meth:`fuse_turned`; up to 2N tiles): the
+        turned tiles add candidates and move a few forward, they never drop one of the upright top-N."""
         desc, t_desc = self.describe(image, rotations, heading, mirror)
         r = self.rank([desc], top_n)[0]
         if turned and len(desc) == 1 and self.turned_index is not None:
-            r = self.fuse_turned(desc, r, top_n)
+            r = self.fuse_turned(desc, r, top_n, cut=False)
         r.times_ms = {"descriptor": t_desc, **r.times_ms}
         return r

@@ -45,8 +45,8 @@ def add_arguments(p):
         "--global-turns",
         action="store_true",
         help="the tiles' global descriptors at eight turns (45° steps) too: a photo of unknown heading retrieves its "
-        "place with one descriptor, its upright ranking interleaved with the ranking by each tile's best turn "
-        "(fewer screens a photo; x8 descriptors, their build time and the index)",
+        "place with one descriptor, the best tiles by their best turn interleaved at the front of its upright "
+        "ranking (fewer screens a photo; x8 descriptors, their build time and the index)",
     )
     p.add_argument(
         "--index",

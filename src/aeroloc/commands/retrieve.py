@@ -23,7 +23,7 @@ def add_arguments(p):
         "--north-up",
         action="store_true",
         help="the queries are north-up: upright ranking only, even when the database holds turned descriptors "
-        "(aeroloc build --global-turns; otherwise a query's upright and turned rankings are interleaved)",
+        "(aeroloc build --global-turns; otherwise the best tiles by their best turn are interleaved at the front)",
     )
     p.add_argument("--out", required=True, help="results CSV")
     p.add_argument("--device", default="auto")

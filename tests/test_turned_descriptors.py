@@ -62,6 +62,22 @@ def test_a_quarter_turned_window_is_the_tile_turned_and_every_view_has_the_tiles
     assert (diag.reshape(-1, 3).max(1) == 0).any()
 
 
+def test_turned_windows_of_the_seeds_rectangular_raw_tiles_keep_their_size(naip_map, tmp_path):
+    """The seed's map format: a tile folder of 1280 x 1230 raw tiles; at zoom 1 a tile is a raw tile."""
+    from _mapfolders import build_seed_folder
+    from aeroloc.maps.sources import open_map
+    from aeroloc.maps.tiling import TileGrid
+
+    seed = build_seed_folder(tmp_path / "seed", naip_map, 2, 2, 1280, 1230, res_m=1.4663, upsample=5)
+    m = open_map(seed.path)
+    tiles = list(TileGrid(m, 1.0, 0.0))
+    assert {(t.width, t.height) for t in tiles} == {(1280, 1230)}
+    views = list(turned_windows(m, tiles[:1], [rotation_angle(k) for k in TILE_TURNS]))
+    assert all(v.shape == (1230, 1280, 3) for v in views)
+    up = m.read(tiles[0].col, tiles[0].row, 1280, 1230)[0]
+    assert np.array_equal(views[TILE_TURNS.index(2)], np.rot90(up, 2))  # a half turn of a rectangle is exact
+
+
 def test_the_turned_store_holds_every_tile_at_the_seven_turns_in_order(turned_db):
     store = np.load(_turns_dir(turned_db) / "descriptors.npy")
     n = len(turned_db.tiles)

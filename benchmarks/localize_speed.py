@@ -7,7 +7,11 @@ Prints a table: set, priors, queries, share within t = max(5 m, 2 map px), wrong
 and p90 CPU s/query, and the median of each stage.
 
 usage: python benchmarks/localize_speed.py [--n 12] [--sets levir-any,szada-any,...] [--modes none,rough,exact]
-       (databases are built once under --cache, tiles about the queries' footprint as in experiments/atlas.yaml)
+       [--per-query] (databases are built once under --cache, tiles about the queries' footprint as in
+       experiments/atlas.yaml)
+
+``--per-query`` also prints, for every photo, its CPU seconds, the screens and matcher runs it cost (counted
+around the re-ranker's screen and match calls) and its error: where a set's median time goes.
 """
 
 from __future__ import annotations
@@ -32,6 +36,38 @@ SETS = {  # name: (map, queries, tile_m)
 }
 
 
+class CallCounts:
+    """Screens and matcher runs of the re-ranker, counted around its two calls while in use (instrumentation:
+    the calls themselves are the real ones)."""
+
+    def __init__(self):
+        from aeroloc.localization.cascade import Reranker
+
+        self.counts = {"screens": 0, "matches": 0}
+        self._cls, self._orig = Reranker, (Reranker.screen_pair, Reranker.match_pair)
+
+    def __enter__(self):
+        counts, (screen, match) = self.counts, self._orig
+
+        def counted(fn, key):
+            def call(*args, **kwargs):
+                counts[key] += 1
+                return fn(*args, **kwargs)
+
+            return call
+
+        self._cls.screen_pair, self._cls.match_pair = counted(screen, "screens"), counted(match, "matches")
+        return self
+
+    def __exit__(self, *exc):
+        self._cls.screen_pair, self._cls.match_pair = self._orig
+
+    def take(self) -> dict:
+        out = dict(self.counts)
+        self.counts.update(screens=0, matches=0)
+        return out
+
+
 def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
     from aeroloc import LocalizeOptions, Localizer, build_database, load_queries, read_image
     from aeroloc.bench.experiment import sample_queries
@@ -45,18 +81,28 @@ def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
     gsd = loc.map_gsd
     t_m, wrong_m = max(5.0, 2 * gsd), max(25.0, 10 * gsd)
     loc(qs[0].name, read_image(qs[0].path), priors=qs[0].priors)  # warm-up: models, map pyramid
-    cpu, hits, wrong, stages = [], 0, 0, {}
-    for q in qs:
-        image = read_image(q.path)
-        c0 = time.process_time()
-        r = loc(q.name, image, priors=q.priors)
-        cpu.append(time.process_time() - c0)
-        for s, ms in r.times_ms.items():
-            stages.setdefault(s, []).append(ms / 1000)
-        if r.localized:
-            e = geo.geodesic_distance(q.lat, q.lon, r.lat, r.lon)
+    cpu, hits, wrong, stages, lines = [], 0, 0, {}, []
+    with CallCounts() as calls:
+        for q in qs:
+            image = read_image(q.path)
+            calls.take()
+            c0 = time.process_time()
+            r = loc(q.name, image, priors=q.priors)
+            cpu.append(time.process_time() - c0)
+            for s, ms in r.times_ms.items():
+                stages.setdefault(s, []).append(ms / 1000)
+            e = geo.geodesic_distance(q.lat, q.lon, r.lat, r.lon) if r.localized else math.nan
             hits += e <= t_m
             wrong += e > wrong_m
+            c = calls.take()
+            lines.append(
+                (
+                    cpu[-1],
+                    f"  {cpu[-1]:5.2f} s  {c['screens']:3d} screens  {c['matches']} matches  "
+                    f"error {e:6.1f} m  {q.name}  {r.status[:60]}",
+                )
+            )
+
     cpu.sort()
     return {
         "set": name,
@@ -67,6 +113,7 @@ def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
         "median_s": statistics.median(cpu),
         "p90_s": cpu[math.ceil(0.9 * (len(cpu) - 1))],
         "stages": {s: statistics.median(v) for s, v in stages.items()},
+        "per_query": [f"{name} {mode}, per photo (fastest first):"] + [line for _, line in sorted(lines)],
     }
 
 
@@ -86,6 +133,7 @@ def main() -> int:
     ap.add_argument("--modes", default="none,rough,exact")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
     ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
+    ap.add_argument("--per-query", action="store_true", help="also print each photo's CPU s, screens, matcher runs")
     args = ap.parse_args()
     from aeroloc.retrieval.database import Database
 
@@ -96,6 +144,7 @@ def main() -> int:
 
     def row(name: str, mode: str) -> list[str]:
         r = run_set(name, mode, args.n, args.cache, dbs)
+        per_query.extend(r["per_query"])
         st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items() if v >= 0.005)
         cells = (r["within_t"], r["wrong"], r["median_s"], r["p90_s"])
         return [
@@ -107,7 +156,10 @@ def main() -> int:
         ]
 
     header = ["set", "priors", "n", "within t", "wrong", "CPU s/query median", "p90", "stage medians (s)"]
+    per_query: list[str] = []
     print_table(header, args.sets.split(","), args.modes.split(","), row)
+    if args.per_query:
+        print("\n".join(per_query))
     return 0
 
 

@@ -113,8 +113,7 @@ def run(args) -> int:
             f"{rep.bytes_per_tile / 1024:.1f} KB/tile"
         )
     if args.global_turns:
-        turned = db.load_turned(args.method)
-        print(f"turned descriptors {args.method}: {turned.ntotal} ({len(db.tiles)} tiles x 7 turns)")
+        print(f"turned descriptors {args.method}: {rep.turned_rows} ({len(db.tiles)} tiles x 7 turns)")
     from aeroloc.retrieval.echoes import build_echoes
 
     echoes = build_echoes(db, args.method)

@@ -14,6 +14,7 @@ Layout::
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import time
@@ -116,16 +117,17 @@ class Database:
 
         _, gdir = self.global_dir(method)
         folder = gdir / TURNS_DIR
-        return load_index(folder / "index.faiss") if _complete(folder) else None
+        return load_index(folder / "index.faiss") if _turned_rows(folder) is not None else None
 
 
-def _complete(folder: Path) -> bool:
-    """A descriptor folder whose store and index are both finished."""
+def _turned_rows(folder: Path) -> int | None:
+    """The rows of a turned descriptor folder whose store and index are both finished, else None."""
+    if not (folder / "index.faiss").is_file():
+        return None
     try:
-        store = DescriptorStore.open_complete(folder)
+        return DescriptorStore.open_complete(folder).n
     except AerolocError:
-        return False
-    return store.complete and (folder / "index.faiss").is_file()
+        return None
 
 
 @dataclass(frozen=True)
@@ -149,6 +151,7 @@ class GlobalBuildReport:
     index_s: float = 0.0
     total_s: float = 0.0
     tiles_per_s: float = 0.0
+    turned_rows: int = 0  # rows of the turned descriptors (tiles x 7, ``turns``), 0 without them
 
 
 def build_global(
@@ -174,17 +177,40 @@ def build_global(
     ``half`` are kept for the API; the shard build describes on CPU (batches of ``batch_size``). ``turns``: every
     tile also described at the seven other turns, with its own index (:meth:`Database.load_turned`; 8x the
     descriptors and their time), so that a photo of unknown heading retrieves its place with one descriptor."""
-    from aeroloc.retrieval.global_shards import GlobalTask, TurnedGlobalTask
+    from aeroloc.retrieval.global_shards import TurnedGlobalTask
+
+    conf = dict(conf or {})
+    args = (batch_size, workers, index_factory, fit_max_tiles, progress, ray, shard_size)
+    report = _build_upright(db, method, conf, weights, *args)
+    if turns:
+        folder = db.folder / report.dir / TURNS_DIR
+        task = TurnedGlobalTask(method, conf, str(weights) if weights else None, folder, batch_size)
+        rows = _build_turned(db, task, report.dim, index_factory, progress, ray, workers, shard_size)
+        report = dataclasses.replace(report, turned_rows=rows)
+    return report
+
+
+def _build_upright(
+    db: Database,
+    method: str,
+    conf: dict,
+    weights,
+    batch_size,
+    workers,
+    index_factory,
+    fit_max_tiles,
+    progress,
+    ray,
+    shard_size,
+) -> GlobalBuildReport:
+    """The upright descriptors and index of :func:`build_global` (cached, or built)."""
+    from aeroloc.retrieval.global_shards import GlobalTask
     from aeroloc.retrieval.models import build_method
     from aeroloc.retrieval.shards import ShardJob
 
-    conf = dict(conf or {})
     key, gdir, entry = _global_entry(db, method, conf, weights, index_factory)
     cached = _cached_build(db, method, key, gdir, entry)
-    turned = TurnedGlobalTask(method, conf, str(weights) if weights else None, gdir / TURNS_DIR, batch_size)
     if cached is not None:
-        if turns:
-            _build_turned(db, turned, index_factory, progress, ray, workers, shard_size)
         return cached
     t_start = time.perf_counter()
     model = build_method(method, conf, weights, device="cpu")
@@ -195,8 +221,6 @@ def build_global(
     store = _merge_store(db, gdir, job, model.dim, {"method": method, "conf": conf, "key": key}, t_desc, t_fit)
     t_index, used = _build_index(store, gdir / "index.faiss", index_factory)
     _register(db, method, {**entry, "index_used": used})
-    if turns:
-        _build_turned(db, turned, index_factory, progress, ray, workers, shard_size)
     return _report(
         db,
         method,
@@ -230,20 +254,24 @@ def run_shards(db: Database, job, desc: str, progress: bool, ray: str | None, wo
     return n_todo, time.perf_counter() - t0
 
 
-def _build_turned(db: Database, task, index_factory: str, progress: bool, ray, workers, shard_size: int) -> None:
-    """The turned descriptors (``task``, a TurnedGlobalTask whose folder is the method's ``turns/``) and their
-    index, unless complete: the same shards, resume and Ray path as the upright build, the same vocabulary."""
+def _build_turned(
+    db: Database, task, dim: int, index_factory: str, progress: bool, ray, workers, shard_size: int
+) -> int:
+    """The turned descriptors (``task``, a TurnedGlobalTask whose folder is the method's ``turns/``; ``dim``
+    the upright ones') and their index, unless complete: the same shards, resume and Ray path as the upright
+    build, the same vocabulary. Returns their rows."""
     from aeroloc.core.frames import TILE_TURNS
     from aeroloc.retrieval.shards import ShardJob
 
-    if _complete(task.folder):
-        return
+    rows = _turned_rows(task.folder)
+    if rows is not None:
+        return rows
     job = ShardJob(str(db.folder), task, shard_size)
     _, t_desc = run_shards(db, job, f"turned descriptors {task.method}", progress, ray, workers)
-    dim = int(np.load(next((task.folder / "shards").glob("*.npy")), mmap_mode="r").shape[1])
     meta = {"method": task.method, "turns": list(TILE_TURNS), "tiles": len(db.tiles)}
     store = _merge_store(db, task.folder, job, dim, meta, t_desc, 0.0, rows_per_tile=len(TILE_TURNS))
     _build_index(store, task.folder / "index.faiss", index_factory)
+    return store.n
 
 
 def _merge_store(

@@ -160,3 +160,13 @@ def test_aeroloc_retrieve_interleaves_the_turned_ranking_unless_north_up(turned_
         row = next(csv.DictReader(out.open()))
         assert row["top_tiles"].split(";") == want.tile_ids
     assert t.id in ret(photo, 10, turned=True).tile_ids[:2]
+
+
+def test_aeroloc_retrieve_refuses_north_up_with_a_rotation_search_in_one_line(turned_db, tmp_path, capsys):
+    from aeroloc.cli import main
+
+    args = ["retrieve", str(turned_db.folder), str(tmp_path / "none.csv"), "--out", str(tmp_path / "r.csv")]
+    assert main([*args, "--north-up", "--rotations", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--north-up and --rotations > 1 contradict" in err
+    assert not (tmp_path / "r.csv").exists()

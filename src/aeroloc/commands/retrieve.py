@@ -44,6 +44,11 @@ def run(args) -> int:
         raise AerolocError(f"--top-n must be >= 1, got {args.top_n}")
     if args.rotations < 1:  # before any work: the database and queries are not read
         raise AerolocError(f"--rotations must be >= 1 (1 = upright query only), got {args.rotations}")
+    if args.north_up and args.rotations != 1:  # as aeroloc localize refuses them
+        raise AerolocError(
+            f"--north-up and --rotations > 1 contradict each other: north-up queries need no rotation search, but "
+            f"rotations={args.rotations} was asked for"
+        )
     trust_from_args(args)
     db = Database(args.db)
     queries = load_queries(args.queries)

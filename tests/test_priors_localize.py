@@ -294,6 +294,39 @@ def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szad
 
 
 @pytest.mark.slow
+def test_two_far_places_are_compared_on_equal_framing_before_a_refusal(szada_db, data_dir, monkeypatch):
+    """A far rival is re-matched with the best on the map windows their transforms point at (duel): szada_north_1_01
+    (exact priors, on the strip's edge) matched its true tile and the strip's other copy 276 / 146 and was refused;
+    its windows hold ~72 / ~23, so it is placed, within 5 m (without the duel: refused again). szada_any_0_05 (no
+    priors) matched the wrong copy's tile 115 and its true tile 55 in the atlas: placed or refused, never on the
+    copy. A place never wins a duel against itself."""
+    import aeroloc.localization.duel as duel_mod
+    from aeroloc.localization.duel import Contender, duel
+    from aeroloc.localization.localizer import Localizer
+
+    loc = Localizer(szada_db)
+    path = data_dir / "multi-region" / "szada-hu"
+    q = {q.name: q for q in load_queries(path / "north" / "queries.csv", priors="exact")}["szada_north_1_01.jpg"]
+    image = read_image(q.path)
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    with monkeypatch.context() as m:
+        m.setattr(duel_mod, "duel", lambda *a, **k: None)
+        refused = loc(q.name, image, priors=q.priors)
+    assert not refused.localized and AMBIGUOUS in refused.status, refused.status
+    q = {q.name: q for q in load_queries(path / "any" / "queries.csv", priors="none")}["szada_any_0_05.jpg"]
+    image = read_image(q.path)
+    res = loc(q.name, image, priors=q.priors)
+    if res.localized:
+        assert geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    else:
+        assert AMBIGUOUS in res.status, res.status
+    best = res.best
+    me = Contender(best, loc.reranker.query_features(image)(best.rot_k))
+    assert duel(loc.map, loc.reranker, image, me, me, 2.0, 20, loc.map_size) is None
+
+
+@pytest.mark.slow
 def test_a_database_built_before_the_echo_check_gets_its_echoes_on_first_use(szada_db, monkeypatch):
     """A database without echoes.json (built before the check): a small one's localizer finds the same echoes
     the build does and writes them; a large one's warns in one line that repeated ground is not checked."""

@@ -228,7 +228,10 @@ class Localizer:
         t0 = time.perf_counter()
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
-        doubt = doubt or (self._rival(image, best, rr, a) if a.localized else None)
+        if not doubt and a.localized:
+            doubt, best, a = self._rival_or_duel(image, best, rr, a)
+            if best is not out.best:  # the rival won the duel: it heads the list
+                out.best, out.top_tiles = best, [best.tile_id] + [t for t in out.top_tiles if t != best.tile_id]
         doubt = doubt or (self._echo_rival(self._footprint(image, best), a) if a.localized else None)
         if doubt:
             a = Alignment(f"not localized: {doubt}")
@@ -274,12 +277,42 @@ class Localizer:
         col, row = self.map.latlon_to_pixel(a.lat, a.lon)
         return footprint_at(float(col), float(row), h.angle, h.scale, (image.shape[1], image.shape[0]))
 
-    def _rival(self, image: np.ndarray, best, rr, a: Alignment) -> str | None:
-        """Why ``best`` is ambiguous, or None: another tile aligns the query at a place more than two reaches
-        (max(25 m, 10 map px)) away with at least half the best's inliers (and the sweep's inlier floor), i.e. a
-        repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22 inliers and the cascade
-        took the wrong one (44 verified inliers; the right one 22). A far tile whose screen reaches half the
-        best's is verified by the matcher first."""
+    def _rival_or_duel(self, image: np.ndarray, best, rr, a: Alignment):
+        """(doubt or None, candidate, alignment): ``best`` and ``a`` when no far place rivals it; when one does,
+        the two re-matched on equal framing (aeroloc.localization.duel), and the decisive winner taken if no
+        third place rivals it; otherwise the rival's doubt. One duel at most (two window matches)."""
+        from aeroloc.localization.duel import Contender, duel
+
+        rival = self._rival(image, best, rr, a)
+        if rival is None:
+            return None, best, a
+        if self.map is None:
+            return rival[0], best, a
+        conf = self.options.sweep_conf()
+        c = rival[1]
+        won = duel(
+            self.map,
+            self.reranker,
+            image,
+            Contender(best, rr.query_at(best.rot_k)),
+            Contender(c, rr.query_at(c.rot_k)),
+            conf["rival_margin"],
+            conf["confirm_inliers"],
+            self.map_size,
+        )
+        if won is None:
+            return rival[0], best, a
+        loser = self._place_of(image, c if won.winner is best else best)
+        again = self._rival(image, won.winner, rr, won.alignment, beaten=loser)
+        return (again[0], won.winner, won.alignment) if again else (None, won.winner, won.alignment)
+
+    def _rival(self, image: np.ndarray, best, rr, a: Alignment, beaten: Alignment | None = None):
+        """(why ``best`` is ambiguous, the rival candidate), or None: another tile aligns the query at a place
+        more than two reaches (max(25 m, 10 map px)) away with at least half the best's inliers (and the sweep's
+        inlier floor), i.e. a repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22
+        inliers and the cascade took the wrong one (44 verified inliers; the right one 22). A far tile whose
+        screen reaches half the best's is verified by the matcher first. Tiles within two reaches of ``beaten``
+        (a place the best won a duel against) are no rivals."""
         reach = reach_m(self.map_gsd)
         # a rival is a place the sweep would confirm on its own (its inlier floor), within its margin of the best
         conf = self.options.sweep_conf()
@@ -287,7 +320,7 @@ class Localizer:
         verified = False
         score = best.score  # the best's own count, like with like: the matcher's once a rival has the matcher's
         for c in rr.ranked:
-            if c is best or c.H is None:
+            if c is best or c.H is None or (beaten is not None and not self._far(image, c, beaten, reach)):
                 continue
             if not verified and c.inliers < 0 and margin * c.screen > best.screen and self._far(image, c, a, reach):
                 verified = True  # the strongest such tile only: one more matcher run at most (two: the best's)
@@ -296,7 +329,7 @@ class Localizer:
                     c.take(*self.reranker.match_at(rr.features, c), c.rot_k, "verify")
             strong = c.score >= floor and margin * c.score >= score
             if strong and self._far(image, c, a, reach):
-                return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)"
+                return f"{AMBIGUOUS} ({score} and {c.score} inliers, more than {2 * reach:.0f} m apart)", c
         return None
 
     def _footprint(self, image: np.ndarray, best) -> np.ndarray | None:
@@ -371,12 +404,15 @@ class Localizer:
             return best.score
         return max(best.score, self.reranker.match_at(rr.features, best)[0])
 
+    def _place_of(self, image: np.ndarray, c) -> Alignment:
+        """Candidate ``c``'s own placement of the query (whatever its inliers)."""
+        return align(c.H, max(c.score, 4), (image.shape[1], image.shape[0]), self.db.by_id[c.tile_id], self.map_size, 4)
+
     def _far(self, image: np.ndarray, c, a: Alignment, reach: float) -> bool:
         """Whether candidate ``c``'s own alignment puts the query more than two reaches from ``a``."""
         from aeroloc.core import geo
 
-        size = (image.shape[1], image.shape[0])
-        b = align(c.H, max(c.score, 4), size, self.db.by_id[c.tile_id], self.map_size, 4)
+        b = self._place_of(image, c)
         return b.localized and float(geo.geodesic_distance(a.lat, a.lon, b.lat, b.lon)) > 2 * reach
 
     def _align_best(self, image: np.ndarray, best) -> Alignment:
@@ -432,7 +468,7 @@ class Localizer:
             if found is None:
                 continue
             rival = self._rival(image, c, rr, found)
-            return (Alignment(f"not localized: {rival}"), c) if rival else (found, c)
+            return (Alignment(f"not localized: {rival[0]}"), c) if rival else (found, c)
         return a, best
 
     def _tiles_around(self, col: float, row: float, retrieved: list[str]) -> list[str]:

@@ -297,7 +297,8 @@ def test_the_map_showing_ground_twice_is_found_and_a_fix_there_is_ambiguous(szad
 def test_two_far_places_are_compared_on_equal_framing_before_a_refusal(szada_db, data_dir, monkeypatch):
     """A far rival is re-matched with the best on the map windows their transforms point at (duel): szada_north_1_01
     (exact priors, on the strip's edge) matched its true tile and the strip's other copy 276 / 146 and was refused;
-    its windows hold ~72 / ~23, so it is placed, within 5 m (without the duel: refused again). szada_any_0_05 (no
+    its windows hold ~72 / ~23, so it is placed, within 5 m, and its status says why (without the duel: refused
+    again). szada_any_0_05 (no
     priors) matched the wrong copy's tile 115 and its true tile 55 in the atlas: placed or refused, never on the
     copy. A place never wins a duel against itself."""
     import aeroloc.localization.duel as duel_mod
@@ -310,6 +311,7 @@ def test_two_far_places_are_compared_on_equal_framing_before_a_refusal(szada_db,
     image = read_image(q.path)
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    assert "a far place also matched" in res.status and "inliers on equal map windows" in res.status, res.status
     with monkeypatch.context() as m:
         m.setattr(duel_mod, "duel", lambda *a, **k: None)
         refused = loc(q.name, image, priors=q.priors)

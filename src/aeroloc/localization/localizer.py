@@ -228,8 +228,9 @@ class Localizer:
         t0 = time.perf_counter()
         a = self._align_best(image, best)
         doubt = self.reranker.doubt(best) if a.localized else None
+        note = ""
         if not doubt and a.localized:
-            doubt, best, a = self._rival_or_duel(image, best, rr, a)
+            doubt, best, a, note = self._rival_or_duel(image, best, rr, a)
             if best is not out.best:  # the rival won the duel: it heads the list
                 out.best, out.top_tiles = best, [best.tile_id] + [t for t in out.top_tiles if t != best.tile_id]
         doubt = doubt or (self._echo_rival(self._footprint(image, best), a) if a.localized else None)
@@ -242,6 +243,8 @@ class Localizer:
                 out.best = best
         out.times_ms["align"] = out.times_ms.get("align", 0.0) + (time.perf_counter() - t0) * 1000 + extra_ms
         out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
+        if a.localized and note:
+            out.status = f"{a.status} ({note})"
 
     def _sweep_fix(self, image: np.ndarray, priors, out: Localization, retrieved: list[str], top_k: int) -> bool:
         """The sweep's candidates confirmed by local features (aeroloc.localization.sweep_stage) into ``out``;
@@ -278,16 +281,17 @@ class Localizer:
         return footprint_at(float(col), float(row), h.angle, h.scale, (image.shape[1], image.shape[0]))
 
     def _rival_or_duel(self, image: np.ndarray, best, rr, a: Alignment):
-        """(doubt or None, candidate, alignment): ``best`` and ``a`` when no far place rivals it; when one does,
-        the two re-matched on equal framing (aeroloc.localization.duel), and the decisive winner taken if no
-        third place rivals it; otherwise the rival's doubt. One duel at most (two window matches)."""
+        """(doubt or None, candidate, alignment, note): ``best`` and ``a`` when no far place rivals it; when one
+        does, the two re-matched on equal framing (aeroloc.localization.duel), and the decisive winner taken if
+        no third place rivals it (``note`` says so, for the status); otherwise the rival's doubt. One duel at
+        most (two window matches)."""
         from aeroloc.localization.duel import Contender, duel
 
         rival = self._rival(image, best, rr, a)
         if rival is None:
-            return None, best, a
+            return None, best, a, ""
         if self.map is None:
-            return rival[0], best, a
+            return rival[0], best, a, ""
         conf = self.options.sweep_conf()
         c = rival[1]
         won = duel(
@@ -301,10 +305,13 @@ class Localizer:
             self.map_size,
         )
         if won is None:
-            return rival[0], best, a
+            return rival[0], best, a, ""
         loser = self._place_of(image, c if won.winner is best else best)
         again = self._rival(image, won.winner, rr, won.alignment, beaten=loser)
-        return (again[0], won.winner, won.alignment) if again else (None, won.winner, won.alignment)
+        if again:
+            return again[0], won.winner, won.alignment, ""
+        note = f"a far place also matched: {won.counts[0]} vs {won.counts[1]} inliers on equal map windows"
+        return None, won.winner, won.alignment, note
 
     def _rival(self, image: np.ndarray, best, rr, a: Alignment, beaten: Alignment | None = None):
         """(why ``best`` is ambiguous, the rival candidate), or None: another tile aligns the query at a place

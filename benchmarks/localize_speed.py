@@ -68,14 +68,22 @@ class CallCounts:
         return out
 
 
-def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
-    from aeroloc import LocalizeOptions, Localizer, build_database, load_queries, read_image
-    from aeroloc.bench.experiment import sample_queries
-    from aeroloc.core import geo
+def open_set(name: str, cache: Path, dbs: dict):
+    """(database, queries CSV) of shared set ``name``: the database given for its map (``dbs``: map path ->
+    folder), else one built once under ``cache`` with tiles about the queries' footprint."""
+    from aeroloc import build_database
 
     map_path, queries_path, tile_m = SETS[name]
     folder = dbs.get(str(map_path)) or cache / f"{map_path.parent.name}-{map_path.stem}-{tile_m}"
-    db = build_database(map_path, folder, tile_m=tile_m)
+    return build_database(map_path, folder, tile_m=tile_m), queries_path
+
+
+def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
+    from aeroloc import LocalizeOptions, Localizer, load_queries, read_image
+    from aeroloc.bench.experiment import sample_queries
+    from aeroloc.core import geo
+
+    db, queries_path = open_set(name, cache, dbs)
     loc = Localizer(db, LocalizeOptions())
     qs = sample_queries(load_queries(queries_path, priors=mode, seed=0), n)
     gsd = loc.map_gsd

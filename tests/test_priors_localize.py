@@ -474,3 +474,66 @@ def test_a_weak_screen_halfway_between_two_turns_is_screened_again_at_its_own_an
     assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+
+
+def _placing(db, tile_id: str, col: float, row: float, screen: int):
+    """A screened candidate on ``tile_id`` whose transform puts a 100 x 100 px query's centre at map px (col,
+    row): a pure shift."""
+    import numpy as np
+
+    from aeroloc.localization.cascade import Candidate
+
+    t = db.by_id[tile_id]
+    H = np.array([[1.0, 0, col - t.col - 50], [0, 1.0, row - t.row - 50], [0, 0, 1]])
+    return Candidate(tile_id, 0, screen=screen, H=H)
+
+
+@pytest.mark.slow
+def test_a_screen_is_accepted_by_agreement_only_with_a_second_tile_and_no_far_rival(levir_db):
+    """The rule of aeroloc.localization.agreement on the real tile grid of levir-tx (0.5 m/px: a reach is 25 m,
+    50 px): a best screen of 30 at a place another tile screens with 20 is accepted; with 19 (no second tile
+    sees it), below 30, or with a place 2 reaches away at more than half its count, it is not."""
+    from aeroloc.localization.agreement import screen_agreed
+    from aeroloc.matching.registry import rerank_conf
+
+    conf = rerank_conf("xfeat-lighterglue")
+    a, b, far = levir_db.tiles[0], levir_db.tiles[1], levir_db.tiles[-1]
+    x, y = (a.col + a.width) - 10.0, a.row + a.height / 2  # inside both overlapping tiles
+    assert b.col <= x <= b.col + b.width and b.row <= y <= b.row + b.height
+    fx, fy = far.col + far.width / 2, far.row + far.height / 2
+    assert abs(fx - x) + abs(fy - y) > 200  # more than two reaches away
+    size = (100, 100)
+
+    def agreed(top, support, rival):
+        cands = [_placing(levir_db, a.id, x, y, top), _placing(levir_db, b.id, x + 20, y, support)]
+        cands.append(_placing(levir_db, far.id, fx, fy, rival))
+        return screen_agreed(levir_db, sorted(cands, key=lambda c: -c.screen), size, conf)
+
+    assert agreed(30, 20, 15)
+    assert not agreed(30, 19, 15)  # no second tile settles the place
+    assert not agreed(29, 25, 10)  # below the count a fix needs
+    assert not agreed(30, 20, 16)  # a far place holds more than half of it
+    assert not screen_agreed(levir_db, [_placing(levir_db, a.id, x, y, 39)], size, conf)  # alone
+    assert not screen_agreed(levir_db, [_placing(levir_db, a.id, x, y, 30)], size, {**conf, "accept_agreed": None})
+
+
+@pytest.mark.slow
+def test_a_photo_whose_place_two_tiles_screen_is_placed_without_the_matcher(levir_db, data_dir):
+    """levir_any_2_04 with rough priors: its best screen (38) is below the screen-only floor (40), and the tile
+    next to it screens the same place (30); accepted by agreement, it is placed within 5 m with no matcher run.
+    With the rule off the matcher verifies it (the time it saves)."""
+    from aeroloc.localization.localizer import Localizer
+
+    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
+    q = {q.name: q for q in load_queries(path, priors="rough", seed=0)}["levir_any_2_04.jpg"]
+    image = read_image(q.path)
+    loc = Localizer(levir_db)
+    runs = []
+    match = loc.reranker.match_pair
+    loc.reranker.match_pair = lambda *a: runs.append(1) or match(*a)
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    assert not runs and res.inliers < 40, (len(runs), res.inliers)
+    loc.reranker.conf["accept_agreed"] = None
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and runs, res.status

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aeroloc.localization.agreement import screen_agreed
 from aeroloc.matching.features import DIAGONAL, extract, inverse_turn, to_original, turn_gap, turned_name
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
@@ -555,6 +556,8 @@ class Reranker:
             accept = self.conf["accept_screen"]
             if screened and accept is not None and screened[0].screen >= accept:
                 screened = []  # clearly verified by the screen alone: the matcher would only cost time
+            elif screen_agreed(self.db, screened, (image.shape[1], image.shape[0]), self.conf):
+                screened = []  # another tile sees the same place, no far place comes close (agreement)
             # below the weak floor a screen is noise: the matcher never made such a candidate pass, so it is not
             # paid for (README #13, "Matcher runs that could never pass")
             floor = self.conf["weak_screen_min"]

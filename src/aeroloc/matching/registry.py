@@ -61,6 +61,10 @@ CASCADE_DEFAULTS = {
     "early_exit": 40,  # screen inliers that end the screen (wrong tiles reached <= 20 on NAIP and Toledo)
     "after_exit": 6,  # unvisited candidates still screened after the early exit (a repeated place may rival it)
     "accept_screen": 40,  # a screen this strong is accepted without the matcher (None: always verify)
+    # a screen this strong is accepted without the matcher too when another tile screens the same place with
+    # min_screen and no place two reaches away holds 1 / agreed_margin of it (aeroloc.localization.agreement)
+    "accept_agreed": 30,
+    "agreed_margin": 2.0,
     "max_verify": 3,  # otherwise the matcher re-matches up to this many best-screened candidates, until one passes
     "min_inliers": 35,  # below this (the matcher's inliers, or the screen's if it ran alone): "not localized"
     "min_screen": 20,  # screen inliers that settle the query's heading; a matcher-verified candidate needs them
@@ -182,6 +186,7 @@ INTEGER_OPTIONS = (
     ("tile_cache", 0, False),
     ("weak_screen_turns", 0, False),
     ("weak_screen_min", 0, False),
+    ("accept_agreed", 0, True),
     ("screen_homography_min", 0, True),
 )
 GEOMETRIES = ("homography", "similarity")  # the models aeroloc.localization.cascade.Reranker._verify fits

@@ -3,9 +3,10 @@
 Tiles overlap (by half a tile in the shared databases), so a query's ground lies in two or more of them. A true
 place is therefore screened strongly on each tile that covers it, at one placement; a chance alignment on a wrong
 tile rarely repeats on its neighbour at the same place. Over every photo of the seven shared sets, no priors and
-rough priors (738 cascades; ``benchmarks/screen_agreement.py``), the best screen was 20-39 inliers on 124; the 4
-that placed the query more than a reach off (3 photos) had support 0, 0, 0 and 13 (support: the best screen of
-another tile placing the query within a reach of it), and all with support of 20 or more were right. So a best screen of at least
+rough priors (738 localizations; ``benchmarks/screen_agreement.py``), the best screen of the first cascade was
+20-39 inliers on 125; the 6 that placed the query more than a reach off (5 photos) had support 0, 0, 0, 0, 0 and
+13 (support: the best screen of another tile placing the query within a reach of it), and the rule below accepts
+46, every one within a reach of the truth. So a best screen of at least
 ``accept_agreed`` inliers whose place another tile screens with ``min_screen`` (the count that settles a heading),
 and that holds ``agreed_margin`` times the best screen of any place more than two reaches away (the rival
 margin: no far place could rival it), is accepted as it is, like a screen of ``accept_screen``. The matcher's

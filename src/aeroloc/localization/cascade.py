@@ -558,9 +558,12 @@ class Reranker:
                 screened = []  # clearly verified by the screen alone: the matcher would only cost time
             elif screen_agreed(self.db, screened, (image.shape[1], image.shape[0]), self.conf):
                 screened = []  # another tile sees the same place, no far place comes close (agreement)
-            # below the weak floor a screen is noise: the matcher never made such a candidate pass, so it is not
-            # paid for (README #13, "Matcher runs that could never pass")
-            floor = self.conf["weak_screen_min"]
+            # with the heading unknown, a screen below the weak floor is noise: the matcher never made such a
+            # candidate pass (96 runs on screens of 8-11), so it is not paid for (README #13, "Matcher runs that
+            # could never pass"). With a heading known (a prior, --north-up) the screens are at the right turn and
+            # the matcher's runs are bounded by max_verify; there a weak screen can still pass: the demo's
+            # naip_20100629_n_018 (256 px tiles, --north-up) screened 11 on its true tile, the matcher found 51
+            floor = self.conf["weak_screen_min"] if families is not None else 0
             to_verify = [(c, [c.rot_k]) for c in screened[: self.conf["max_verify"]] if c.screen >= floor]
             until_pass = True
         else:  # the straightforward loop: the matcher on every candidate x rotation

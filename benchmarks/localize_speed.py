@@ -125,6 +125,22 @@ def run_set(name: str, mode: str, n: int, cache: Path, dbs: dict) -> dict:
     }
 
 
+def add_database_args(ap: argparse.ArgumentParser) -> None:
+    """The benchmarks' database options: ``--cache`` (where databases are built once) and ``--db`` (existing ones)."""
+    ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
+    ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
+
+
+def given_databases(args) -> dict:
+    """Map path -> database folder of every ``--db``; torch on one thread (the benchmarks measure one core)."""
+    import torch
+
+    from aeroloc.retrieval.database import Database
+
+    torch.set_num_threads(1)
+    return {Database(d).info["map"]["path"]: Path(d) for d in args.db}
+
+
 def print_table(header: list[str], sets: list[str], modes: list[str], row) -> None:
     """A markdown table with a row ``row(set, mode)`` (its cells) per set x prior mode, printed as it is measured."""
     print("| " + " | ".join(header) + " |")
@@ -139,16 +155,10 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=12)
     ap.add_argument("--sets", default=",".join(SETS))
     ap.add_argument("--modes", default="none,rough,exact")
-    ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
-    ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
+    add_database_args(ap)
     ap.add_argument("--per-query", action="store_true", help="also print each photo's CPU s, screens, matcher runs")
     args = ap.parse_args()
-    from aeroloc.retrieval.database import Database
-
-    dbs = {Database(d).info["map"]["path"]: Path(d) for d in args.db}
-    import torch
-
-    torch.set_num_threads(1)
+    dbs = given_databases(args)
 
     def row(name: str, mode: str) -> list[str]:
         r = run_set(name, mode, args.n, args.cache, dbs)

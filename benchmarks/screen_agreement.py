@@ -15,13 +15,12 @@ usage: python benchmarks/screen_agreement.py [--sets naip-rotated,levir-any,...]
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from localize_speed import ROOT, SETS, open_set
+from localize_speed import SETS, add_database_args, given_databases, open_set
 
 
 def log_set(name: str, mode: str, dbs: dict, cache: Path) -> list[tuple]:
@@ -29,13 +28,12 @@ def log_set(name: str, mode: str, dbs: dict, cache: Path) -> list[tuple]:
     from aeroloc import LocalizeOptions, Localizer, load_queries, read_image
     from aeroloc.core import geo
     from aeroloc.localization import cascade
-    from aeroloc.localization.agreement import centre_px, screen_agreed
+    from aeroloc.localization.agreement import centre_px, screen_agreed, support_and_far
     from aeroloc.localization.alignment import reach_m
 
     db, queries_path = open_set(name, cache, dbs)
     loc = Localizer(db, LocalizeOptions())
     gsd = loc.map_gsd
-    reach_px = reach_m(gsd) / gsd if gsd else 10.0
     logged: list[tuple] = []
     original = cascade.Reranker.__call__
 
@@ -59,14 +57,7 @@ def log_set(name: str, mode: str, dbs: dict, cache: Path) -> list[tuple]:
             p0 = centre_px(db, cands[0], size)
             if p0 is None:
                 continue
-            support = far = 0
-            for c in cands[1:]:
-                p = centre_px(db, c, size)
-                if p is None:
-                    continue
-                d = math.hypot(p[0] - p0[0], p[1] - p0[1])
-                support = max(support, c.screen) if d <= reach_px else support
-                far = max(far, c.screen) if d > 2 * reach_px else far
+            support, far = support_and_far(db, cands, size)
             lat, lon = loc.map.pixel_to_latlon(*p0)
             right = geo.geodesic_distance(q.lat, q.lon, float(lat), float(lon)) <= reach_m(gsd)
             out.append((q.name, cands[0].screen, support, far, right, screen_agreed(db, cands, size, conf)))
@@ -79,15 +70,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", default=",".join(SETS))
     ap.add_argument("--modes", default="none,rough")
-    ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
-    ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
+    add_database_args(ap)
     args = ap.parse_args()
-    import torch
-
-    from aeroloc.retrieval.database import Database
-
-    torch.set_num_threads(1)
-    dbs = {Database(d).info["map"]["path"]: Path(d) for d in args.db}
+    dbs = given_databases(args)
     totals = {"photos": 0, "wrong": 0, "accepted": 0, "accepted_wrong": 0}
     print("| set | priors | photo | best screen | support | far best | right | accepted |")
     print("|---|---|---|---:|---:|---:|---|---|")

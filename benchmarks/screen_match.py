@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from localize_speed import ROOT, SETS, print_table
+from localize_speed import SETS, add_database_args, given_databases, print_table
 
 
 def int8_mutual_nn(d0, d1, min_similarity: float) -> np.ndarray:
@@ -75,16 +75,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=6)
     ap.add_argument("--sets", default="levir-any,naip-rotated,szada-any")
-    ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "speed-cache")
-    ap.add_argument("--db", action="append", default=[], help="an existing database folder to use for its map")
+    add_database_args(ap)
     args = ap.parse_args()
-    import torch
-
     from aeroloc.matching.models.xfeat import mutual_nn
-    from aeroloc.retrieval.database import Database
 
-    torch.set_num_threads(1)
-    dbs = {Database(d).info["map"]["path"]: Path(d) for d in args.db}
+    dbs = given_databases(args)
 
     def row(name: str, _mode: str) -> list[str]:
         pairs = screen_pairs(name, args.n, args.cache, dbs)

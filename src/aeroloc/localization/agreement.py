@@ -32,15 +32,12 @@ def centre_px(db, c, query_size: tuple[int, int]) -> tuple[float, float] | None:
     return tile.col + p[0], tile.row + p[1]
 
 
-def screen_agreed(db, screened: list, query_size: tuple[int, int], conf: dict) -> bool:
-    """Whether the best of ``screened`` (best screen first) is accepted by agreement (module docstring)."""
-    top_min = conf.get("accept_agreed")
-    if top_min is None or not screened or screened[0].screen < top_min:
-        return False
-    top = screened[0]
-    p0 = centre_px(db, top, query_size)
+def support_and_far(db, screened: list, query_size: tuple[int, int]) -> tuple[int, int]:
+    """(support, far): the best screen among ``screened[1:]`` placing the query within a reach (max(25 m, 10 map
+    px)) of where ``screened[0]`` places it, and the best placing it more than two reaches away (0 when none)."""
+    p0 = centre_px(db, screened[0], query_size)
     if p0 is None:
-        return False
+        return 0, 0
     gsd = db.info["map"].get("resolution_m")
     reach = reach_m(float(gsd)) / float(gsd) if gsd else 10.0  # map px
     support = far = 0
@@ -53,4 +50,15 @@ def screen_agreed(db, screened: list, query_size: tuple[int, int], conf: dict) -
             support = max(support, c.screen)
         elif d > 2 * reach:
             far = max(far, c.screen)
-    return support >= conf["min_screen"] and top.screen >= conf["agreed_margin"] * far
+    return support, far
+
+
+def screen_agreed(db, screened: list, query_size: tuple[int, int], conf: dict) -> bool:
+    """Whether the best of ``screened`` (best screen first) is accepted by agreement (module docstring)."""
+    top_min = conf.get("accept_agreed")
+    if top_min is None or not screened or screened[0].screen < top_min:
+        return False
+    if centre_px(db, screened[0], query_size) is None:
+        return False
+    support, far = support_and_far(db, screened, query_size)
+    return support >= conf["min_screen"] and screened[0].screen >= conf["agreed_margin"] * far

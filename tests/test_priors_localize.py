@@ -515,6 +515,9 @@ def test_a_screen_is_accepted_by_agreement_only_with_a_second_tile_and_no_far_ri
     assert not agreed(30, 20, 16)  # a far place holds more than half of it
     assert not screen_agreed(levir_db, [_placing(levir_db, a.id, x, y, 39)], size, conf)  # alone
     assert not screen_agreed(levir_db, [_placing(levir_db, a.id, x, y, 30)], size, {**conf, "accept_agreed": None})
+    cands = [_placing(levir_db, a.id, x, y, 33), _placing(levir_db, b.id, x + 20, y, 25)]
+    assert not screen_agreed(levir_db, cands, size, {**conf, "min_inliers": 35})  # a fix would not align
+    assert screen_agreed(levir_db, cands, size, {**conf, "min_inliers": 33})
 
 
 @pytest.mark.slow

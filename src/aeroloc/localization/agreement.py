@@ -6,12 +6,12 @@ tile rarely repeats on its neighbour at the same place. Over every photo of the 
 rough priors (738 localizations; ``benchmarks/screen_agreement.py``), the best screen of the first cascade was
 20-39 inliers on 125; the 6 that placed the query more than a reach off (5 photos) had support 0, 0, 0, 0, 0 and
 13 (support: the best screen of another tile placing the query within a reach of it), and the rule below accepts
-46, every one within a reach of the truth. So a best screen of at least
-``accept_agreed`` inliers whose place another tile screens with ``min_screen`` (the count that settles a heading),
-and that holds ``agreed_margin`` times the best screen of any place more than two reaches away (the rival
-margin: no far place could rival it), is accepted as it is, like a screen of ``accept_screen``. The matcher's
-~0.2-0.4 s is saved on the median photos of NAIP dev-rotated with rough priors (best screens 33-39, neighbours
-30-33).
+46, every one within a reach of the truth. So a best screen of at least ``accept_agreed`` inliers (and
+``min_inliers``, what a fix needs to align) whose place another tile screens with ``min_screen`` (the count that
+settles a heading), and that holds ``agreed_margin`` times the best screen of any place more than two reaches
+away (the rival margin: no far place could rival it), is accepted as it is, like a screen of ``accept_screen``.
+The matcher's ~0.2-0.4 s is saved on the median photos of NAIP dev-rotated with rough priors (best screens
+33-39, neighbours 30-33).
 """
 
 from __future__ import annotations
@@ -55,8 +55,9 @@ def support_and_far(db, screened: list, query_size: tuple[int, int]) -> tuple[in
 
 def screen_agreed(db, screened: list, query_size: tuple[int, int], conf: dict) -> bool:
     """Whether the best of ``screened`` (best screen first) is accepted by agreement (module docstring)."""
-    top_min = conf.get("accept_agreed")
-    if top_min is None or not screened or screened[0].screen < top_min:
+    if conf.get("accept_agreed") is None or not screened:
+        return False
+    if screened[0].screen < max(conf["accept_agreed"], conf["min_inliers"]):  # and what a fix needs to align
         return False
     if centre_px(db, screened[0], query_size) is None:
         return False

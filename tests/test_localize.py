@@ -168,6 +168,13 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
             with pytest.raises(AerolocError, match=rf"{key} must be an integer >= 0, got "):
                 LocalizeOptions(rerank_overrides={key: bad})
     assert LocalizeOptions(rerank_overrides={"tile_cache": 0}).cascade_conf()["tile_cache"] == 0
+    for bad in (-1, 2.5, "30", False):
+        with pytest.raises(AerolocError, match=r"accept_agreed must be None or an integer >= 0, got "):
+            LocalizeOptions(rerank_overrides={"accept_agreed": bad})
+    assert LocalizeOptions(rerank_overrides={"accept_agreed": None}).cascade_conf()["accept_agreed"] is None
+    for bad in (0.5, -2, "2", None, True):
+        with pytest.raises(AerolocError, match=r"agreed_margin must be a number >= 1, got "):
+            LocalizeOptions(rerank_overrides={"agreed_margin": bad})
     for key in ("geometry", "screen_geometry"):
         with pytest.raises(AerolocError, match=rf"{key} must be one of homography, similarity, got 'affine'"):
             LocalizeOptions(rerank_overrides={key: "affine"})

@@ -174,6 +174,9 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
             continue
         what = f"None or an integer >= {low}" if none_ok else f"an integer >= {low}"
         raise AerolocError(f"re-ranker option {key} must be {what}, got {v!r}")
+    m = conf["agreed_margin"]
+    if isinstance(m, bool) or not isinstance(m, (int, float)) or not m >= 1.0:
+        raise AerolocError(f"re-ranker option agreed_margin must be a number >= 1, got {m!r}")
     for key, choices in CHOICE_OPTIONS:
         if conf[key] not in choices:
             raise AerolocError(f"re-ranker option {key} must be one of {', '.join(choices)}, got {conf[key]!r}")

@@ -54,11 +54,11 @@ def log_set(name: str, mode: str, dbs: dict, cache: Path) -> list[tuple]:
             cands = sorted(cands, key=lambda c: (-c.screen, c.retrieval_rank))
             if not cands or not 20 <= cands[0].screen < 40:
                 continue
-            p0 = centre_px(db, cands[0], size)
-            if p0 is None:
+            found = support_and_far(db, cands, size)
+            if found is None:
                 continue
-            support, far = support_and_far(db, cands, size)
-            lat, lon = loc.map.pixel_to_latlon(*p0)
+            support, far = found
+            lat, lon = loc.map.pixel_to_latlon(*centre_px(db, cands[0], size))
             right = geo.geodesic_distance(q.lat, q.lon, float(lat), float(lon)) <= reach_m(gsd)
             out.append((q.name, cands[0].screen, support, far, right, screen_agreed(db, cands, size, conf)))
     finally:

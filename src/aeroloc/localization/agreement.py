@@ -32,12 +32,13 @@ def centre_px(db, c, query_size: tuple[int, int]) -> tuple[float, float] | None:
     return tile.col + p[0], tile.row + p[1]
 
 
-def support_and_far(db, screened: list, query_size: tuple[int, int]) -> tuple[int, int]:
+def support_and_far(db, screened: list, query_size: tuple[int, int]) -> tuple[int, int] | None:
     """(support, far): the best screen among ``screened[1:]`` placing the query within a reach (max(25 m, 10 map
-    px)) of where ``screened[0]`` places it, and the best placing it more than two reaches away (0 when none)."""
+    px)) of where ``screened[0]`` places it, and the best placing it more than two reaches away (0 when none);
+    None when ``screened[0]`` places it nowhere usable."""
     p0 = centre_px(db, screened[0], query_size)
     if p0 is None:
-        return 0, 0
+        return None
     gsd = db.info["map"].get("resolution_m")
     reach = reach_m(float(gsd)) / float(gsd) if gsd else 10.0  # map px
     support = far = 0
@@ -59,7 +60,8 @@ def screen_agreed(db, screened: list, query_size: tuple[int, int], conf: dict) -
         return False
     if screened[0].screen < max(conf["accept_agreed"], conf["min_inliers"]):  # and what a fix needs to align
         return False
-    if centre_px(db, screened[0], query_size) is None:
+    found = support_and_far(db, screened, query_size)
+    if found is None:
         return False
-    support, far = support_and_far(db, screened, query_size)
+    support, far = found
     return support >= conf["min_screen"] and screened[0].screen >= conf["agreed_margin"] * far

@@ -306,7 +306,7 @@ class Localizer:
         )
         if won is None:
             return rival[0], best, a, ""
-        loser = self._place_of(image, c if won.winner is best else best)
+        loser = self._place_of(image, c) if won.winner is best else a  # ``a``: the best's own placement
         again = self._rival(image, won.winner, rr, won.alignment, beaten=loser)
         if again:
             return again[0], won.winner, won.alignment, ""

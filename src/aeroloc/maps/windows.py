@@ -177,13 +177,19 @@ def _bands(tiles: Sequence) -> Iterator[list[int]]:
         yield band
 
 
+def _band_box(tiles: Sequence, band: list[int], pad: int = 0) -> tuple[int, int, int, int]:
+    """(c0, r0, c1, r1) map px of the window holding the band's tiles, grown by ``pad`` on every side."""
+    c0 = min(tiles[i].col for i in band) - pad
+    r0 = min(tiles[i].row for i in band) - pad
+    c1 = max(tiles[i].col + tiles[i].width for i in band) + pad
+    r1 = max(tiles[i].row + tiles[i].height for i in band) + pad
+    return c0, r0, c1, r1
+
+
 def read_windows(m: Map, tiles: Sequence) -> Iterator[np.ndarray]:
     """RGB uint8 of each tile in order (the same pixels as ``m.read`` of its window), cut from band reads."""
     for band in _bands(tiles):
-        c0 = min(tiles[i].col for i in band)
-        r0 = min(tiles[i].row for i in band)
-        c1 = max(tiles[i].col + tiles[i].width for i in band)
-        r1 = max(tiles[i].row + tiles[i].height for i in band)
+        c0, r0, c1, r1 = _band_box(tiles, band)
         block, _ = m.read(c0, r0, c1 - c0, r1 - r0)
         for i in band:
             t = tiles[i]
@@ -200,10 +206,7 @@ def turned_windows(m: Map, tiles: Sequence, angles: Sequence[float]) -> Iterator
 
     for band in _bands(tiles):
         pad = max(int(np.ceil(np.hypot(tiles[i].width, tiles[i].height) / 2)) for i in band)
-        c0 = min(tiles[i].col for i in band) - pad
-        r0 = min(tiles[i].row for i in band) - pad
-        c1 = max(tiles[i].col + tiles[i].width for i in band) + pad
-        r1 = max(tiles[i].row + tiles[i].height for i in band) + pad
+        c0, r0, c1, r1 = _band_box(tiles, band, pad)
         block = np.zeros((r1 - r0, c1 - c0, 3), np.uint8)
         rc0, rr0, rc1, rr1 = max(c0, 0), max(r0, 0), min(c1, m.width), min(r1, m.height)
         block[rr0 - r0 : rr1 - r0, rc0 - c0 : rc1 - c0] = m.read(rc0, rr0, rc1 - rc0, rr1 - rr0)[0]

@@ -540,3 +540,29 @@ def test_a_photo_whose_place_two_tiles_screen_is_placed_without_the_matcher(levi
     loc.reranker.conf["accept_agreed"] = None
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and runs, res.status
+
+
+@pytest.mark.slow
+def test_a_far_tile_screened_at_noise_level_is_no_rival_and_costs_no_matcher_run(levir_db, data_dir, monkeypatch):
+    """levir_any_1_00 (no priors): its best screen is weak, and a far tile screened 12, over half of it, so the
+    rival check used to run the matcher on that tile. A screen under ``min_screen`` (20) that stays there with the
+    query turned by the tile's own screen angle is noise: no matcher run, the same fix within 5 m. Forced to run
+    anyway, the matcher finds under half the best's inliers there: that tile was never a rival."""
+    from aeroloc.localization import cascade
+    from aeroloc.localization.localizer import Localizer
+
+    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
+    q = {q.name: q for q in load_queries(path, priors="none")}["levir_any_1_00.jpg"]
+    image = read_image(q.path)
+    loc = Localizer(levir_db)
+    rivals = []
+    match_at = cascade.Reranker.match_at
+    monkeypatch.setattr(cascade.Reranker, "match_at", lambda s, f, c: rivals.append(c) or match_at(s, f, c))
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    assert not rivals and res.inliers >= loc.reranker.conf["min_inliers"], ([c.screen for c in rivals], res.inliers)
+    monkeypatch.setattr(cascade.Reranker, "screen_is_noise", lambda *a: False)
+    again = loc(q.name, image, priors=q.priors)
+    assert [c.screen < loc.reranker.conf["min_screen"] for c in rivals] == [True], [c.screen for c in rivals]
+    assert 2 * rivals[0].inliers < res.inliers, (rivals[0].inliers, res.inliers)
+    assert (again.lat, again.lon) == (res.lat, res.lon), again.status

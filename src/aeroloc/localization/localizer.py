@@ -318,8 +318,9 @@ class Localizer:
         more than two reaches (max(25 m, 10 map px)) away with at least half the best's inliers (and the sweep's
         inlier floor), i.e. a repeated pattern. On szada-hu farmland two fields 547 m apart screened 24 and 22
         inliers and the cascade took the wrong one (44 verified inliers; the right one 22). A far tile whose
-        screen reaches half the best's is verified by the matcher first. Tiles within two reaches of ``beaten``
-        (a place the best won a duel against) are no rivals."""
+        screen reaches half the best's is verified by the matcher first, unless its screen stays at noise level
+        with the query at its own angle (aeroloc.localization.cascade.Reranker.screen_is_noise). Tiles within two
+        reaches of ``beaten`` (a place the best won a duel against) are no rivals."""
         reach = reach_m(self.map_gsd)
         # a rival is a place the sweep would confirm on its own (its inlier floor), within its margin of the best
         conf = self.options.sweep_conf()
@@ -331,8 +332,8 @@ class Localizer:
                 continue
             if not verified and c.inliers < 0 and margin * c.screen > best.screen and self._far(image, c, a, reach):
                 verified = True  # the strongest such tile only: one more matcher run at most (two: the best's)
-                score = self._matched_score(best, rr) if best.inliers < 0 else score
-                if rr.features is not None:
+                if rr.features is not None and not self.reranker.screen_is_noise(rr.features, c):
+                    score = self._matched_score(best, rr) if best.inliers < 0 else score
                     c.take(*self.reranker.match_at(rr.features, c), c.rot_k, "verify")
             strong = c.score >= floor and margin * c.score >= score
             if strong and self._far(image, c, a, reach):

@@ -175,6 +175,11 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
     for bad in (0.5, -2, "2", None, True):
         with pytest.raises(AerolocError, match=r"agreed_margin must be a number >= 1, got "):
             LocalizeOptions(rerank_overrides={"agreed_margin": bad})
+    for key in ("diagonals", "screen", "turned_tiles", "own_angle_rescreen"):
+        for bad in ("false", 0, None):
+            with pytest.raises(AerolocError, match=rf"{key} must be true or false, got "):
+                LocalizeOptions(rerank_overrides={key: bad})
+    assert LocalizeOptions(rerank_overrides={"own_angle_rescreen": False}).cascade_conf()["own_angle_rescreen"] is False
     for key in ("geometry", "screen_geometry"):
         with pytest.raises(AerolocError, match=rf"{key} must be one of homography, similarity, got 'affine'"):
             LocalizeOptions(rerank_overrides={key: "affine"})

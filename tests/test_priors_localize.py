@@ -426,21 +426,28 @@ def _true_tiles(db, queries_csv, name: str):
 def test_a_tile_the_matcher_fails_at_a_quarter_turn_is_matched_at_the_screens_own_angle(levir_db, data_dir):
     """levir_any_4_06 looks 65°, no prior. On its true tile, at the 90° turn (25° of residual turn) the screen
     settles the heading (25 inliers measured) but the matcher breaks (3); the query turned by the screen's own
-    angle is matched again (``screen_turns``) and passes (240 measured), placing the photo within 5 m."""
+    angle is matched again (``screen_turns``) and passes (240 measured), placing the photo within 5 m. Since the
+    best screen is first screened again at that angle (``own_angle_rescreen``, 93 measured), the screen alone
+    accepts it, within 5 m too."""
     from aeroloc.localization.alignment import align
     from aeroloc.localization.cascade import Reranker
 
     q, loc, tiles, image = _true_tiles(
         levir_db, data_dir / "multi-region/levir-tx/any/queries.csv", "levir_any_4_06.jpg"
     )
-    off = Reranker(levir_db, "xfeat-lighterglue", conf={"screen_turns": 0})(image, tiles, 0, rotations=[1])
-    on = loc.reranker(image, tiles, 1, rotations=[1])
-    c_off, c_on = max(off.candidates, key=lambda c: c.screen), on.candidates[0]
+    plain = {"own_angle_rescreen": False}
+    off = Reranker(levir_db, "xfeat-lighterglue", conf={**plain, "screen_turns": 0})(image, tiles, 0, rotations=[1])
+    on = Reranker(levir_db, "xfeat-lighterglue", conf=plain)(image, tiles, 1, rotations=[1])
+    rescreened = loc.reranker(image, tiles, 1, rotations=[1])
+    c_off, c_on, c_re = max(off.candidates, key=lambda c: c.screen), on.candidates[0], rescreened.candidates[0]
     floor = loc.reranker.conf["min_inliers"]
     assert c_off.screen >= loc.reranker.conf["min_screen"] and c_off.inliers < floor, (c_off.screen, c_off.inliers)
     assert c_on.inliers >= floor, c_on.inliers
-    a = align(c_on.H, c_on.score, (image.shape[1], image.shape[0]), levir_db.by_id[c_on.tile_id], loc.map_size, floor)
-    assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status
+    assert c_re.inliers < 0 and c_re.screen >= loc.reranker.conf["accept_screen"], (c_re.inliers, c_re.screen)
+    size = (image.shape[1], image.shape[0])
+    for c in (c_on, c_re):
+        a = align(c.H, c.score, size, levir_db.by_id[c.tile_id], loc.map_size, floor)
+        assert a.localized and geo.geodesic_distance(q.lat, q.lon, a.lat, a.lon) < 5.0, a.status
 
 
 @pytest.mark.slow
@@ -524,7 +531,7 @@ def test_a_screen_is_accepted_by_agreement_only_with_a_second_tile_and_no_far_ri
 def test_a_photo_whose_place_two_tiles_screen_is_placed_without_the_matcher(levir_db, data_dir):
     """levir_any_2_04 with rough priors: its best screen (38) is below the screen-only floor (40), and the tile
     next to it screens the same place (30); accepted by agreement, it is placed within 5 m with no matcher run.
-    With the rule off the matcher verifies it (the time it saves)."""
+    With the rule (and the re-screen at its own angle) off the matcher verifies it (the time it saves)."""
     from aeroloc.localization.localizer import Localizer
 
     path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
@@ -538,6 +545,7 @@ def test_a_photo_whose_place_two_tiles_screen_is_placed_without_the_matcher(levi
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
     assert not runs and res.inliers < 40, (len(runs), res.inliers)
     loc.reranker.conf["accept_agreed"] = None
+    loc.reranker.conf["own_angle_rescreen"] = False  # at its own angle it screens 50: accepted by the screen
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and runs, res.status
 
@@ -566,3 +574,26 @@ def test_a_far_tile_screened_at_noise_level_is_no_rival_and_costs_no_matcher_run
     assert [c.screen < loc.reranker.conf["min_screen"] for c in rivals] == [True], [c.screen for c in rivals]
     assert 2 * rivals[0].inliers < res.inliers, (rivals[0].inliers, res.inliers)
     assert (again.lat, again.lon) == (res.lat, res.lon), again.status
+
+
+@pytest.mark.slow
+def test_a_best_screen_at_a_turn_far_from_its_own_is_screened_again_at_its_own_angle(levir_db, data_dir):
+    """levir_any_2_02 (no priors) looks ~50° off the nearest turn screened: its true tile screens 35, under the
+    screen-only floor (40), and the matcher was asked. Screened again with the query turned by the screen's own
+    angle it reaches over 100 (208 measured): accepted by the screen, placed within 5 m with no matcher run. With
+    ``own_angle_rescreen`` off the matcher runs."""
+    from aeroloc.localization.localizer import Localizer
+
+    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
+    q = {q.name: q for q in load_queries(path, priors="none")}["levir_any_2_02.jpg"]
+    image = read_image(q.path)
+    loc = Localizer(levir_db)
+    runs = []
+    match = loc.reranker.match_pair
+    loc.reranker.match_pair = lambda *a: runs.append(1) or match(*a)
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
+    assert not runs and res.inliers >= 100 and res.best.rot_k >= 2 * DIAGONAL, (len(runs), res.inliers)
+    loc.reranker.conf["own_angle_rescreen"] = False
+    res = loc(q.name, image, priors=q.priors)
+    assert res.localized and runs, res.status

@@ -87,6 +87,10 @@ CASCADE_DEFAULTS = {
     # at most ``screen_turns`` candidates a query (0: off)
     "screen_turn_min_deg": 10.0,
     "screen_turns": 1,
+    # a best screen of min_screen or more that the screen rules do not accept is screened again with the query
+    # turned by its own screen angle, and judged again, before the matcher is asked
+    # (aeroloc.localization.cascade.Reranker._rescreen_at_own_angle); False: off
+    "own_angle_rescreen": True,
     # when no candidate passed: this many best weakly screened candidates (>= weak_screen_min inliers, < min_screen)
     # screened again with the query turned by their own screen's angle, and matched there when that re-screen
     # settles a heading (aeroloc.localization.cascade.Reranker.weak_screen_turns); 0: off
@@ -177,6 +181,9 @@ def rerank_conf(name: str, overrides: dict | None = None) -> dict:
     m = conf["agreed_margin"]
     if isinstance(m, bool) or not isinstance(m, (int, float)) or not m >= 1.0:
         raise AerolocError(f"re-ranker option agreed_margin must be a number >= 1, got {m!r}")
+    for key in BOOL_OPTIONS:
+        if not isinstance(conf[key], bool):
+            raise AerolocError(f"re-ranker option {key} must be true or false, got {conf[key]!r}")
     for key, choices in CHOICE_OPTIONS:
         if conf[key] not in choices:
             raise AerolocError(f"re-ranker option {key} must be one of {', '.join(choices)}, got {conf[key]!r}")
@@ -192,6 +199,8 @@ INTEGER_OPTIONS = (
     ("accept_agreed", 0, True),
     ("screen_homography_min", 0, True),
 )
+# switches: a string such as "false" would otherwise count as on
+BOOL_OPTIONS = ("diagonals", "screen", "turned_tiles", "own_angle_rescreen")
 GEOMETRIES = ("homography", "similarity")  # the models aeroloc.localization.cascade.Reranker._verify fits
 # (option, its values): a model name misspelt would otherwise fall through to the homography
 CHOICE_OPTIONS = (("geometry", GEOMETRIES), ("screen_geometry", GEOMETRIES))

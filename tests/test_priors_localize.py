@@ -527,20 +527,26 @@ def test_a_screen_is_accepted_by_agreement_only_with_a_second_tile_and_no_far_ri
     assert screen_agreed(levir_db, cands, size, {**conf, "min_inliers": 33})
 
 
+def _levir_any_counting_matches(levir_db, data_dir, name: str, priors: str):
+    """(query, image, localizer, matcher runs) for levir-tx/any photo ``name``: every matcher run of the
+    localizer's re-ranker appends to the list."""
+    from aeroloc.localization.localizer import Localizer
+
+    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
+    q = {q.name: q for q in load_queries(path, priors=priors, seed=0)}[name]
+    loc = Localizer(levir_db)
+    runs: list[int] = []
+    match = loc.reranker.match_pair
+    loc.reranker.match_pair = lambda *a: runs.append(1) or match(*a)
+    return q, read_image(q.path), loc, runs
+
+
 @pytest.mark.slow
 def test_a_photo_whose_place_two_tiles_screen_is_placed_without_the_matcher(levir_db, data_dir):
     """levir_any_2_04 with rough priors: its best screen (38) is below the screen-only floor (40), and the tile
     next to it screens the same place (30); accepted by agreement, it is placed within 5 m with no matcher run.
     With the rule (and the re-screen at its own angle) off the matcher verifies it (the time it saves)."""
-    from aeroloc.localization.localizer import Localizer
-
-    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
-    q = {q.name: q for q in load_queries(path, priors="rough", seed=0)}["levir_any_2_04.jpg"]
-    image = read_image(q.path)
-    loc = Localizer(levir_db)
-    runs = []
-    match = loc.reranker.match_pair
-    loc.reranker.match_pair = lambda *a: runs.append(1) or match(*a)
+    q, image, loc, runs = _levir_any_counting_matches(levir_db, data_dir, "levir_any_2_04.jpg", "rough")
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
     assert not runs and res.inliers < 40, (len(runs), res.inliers)
@@ -582,15 +588,7 @@ def test_a_best_screen_at_a_turn_far_from_its_own_is_screened_again_at_its_own_a
     screen-only floor (40), and the matcher was asked. Screened again with the query turned by the screen's own
     angle it reaches over 100 (208 measured): accepted by the screen, placed within 5 m with no matcher run. With
     ``own_angle_rescreen`` off the matcher runs."""
-    from aeroloc.localization.localizer import Localizer
-
-    path = data_dir / "multi-region" / "levir-tx" / "any" / "queries.csv"
-    q = {q.name: q for q in load_queries(path, priors="none")}["levir_any_2_02.jpg"]
-    image = read_image(q.path)
-    loc = Localizer(levir_db)
-    runs = []
-    match = loc.reranker.match_pair
-    loc.reranker.match_pair = lambda *a: runs.append(1) or match(*a)
+    q, image, loc, runs = _levir_any_counting_matches(levir_db, data_dir, "levir_any_2_02.jpg", "none")
     res = loc(q.name, image, priors=q.priors)
     assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, res.status
     assert not runs and res.inliers >= 100 and res.best.rot_k >= 2 * DIAGONAL, (len(runs), res.inliers)

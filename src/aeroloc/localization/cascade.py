@@ -502,10 +502,18 @@ class Reranker:
         floor = self.conf["min_screen"]
         if c.screen >= floor:
             return False
-        key = self._own_angle(query, c, {})
-        if key is not None:
-            c.take(*self.screen_pair(query.done[key], self.tile_features([c.tile_id])[c.tile_id]), key, "screen")
+        self._rescreen(query, c)
         return c.screen < floor
+
+    def _rescreen(self, query: QueryFeatures, c: Candidate) -> bool:
+        """``c`` screened again with the query turned by its own screen angle (:meth:`_own_angle`), keeping the
+        better screen and its transform (at the key of the turned query's features); False when there is no
+        such angle to try."""
+        key = self._own_angle(query, c, {})
+        if key is None:
+            return False
+        c.take(*self.screen_pair(query.done[key], self.tile_features([c.tile_id])[c.tile_id]), key, "screen")
+        return True
 
     def _screen_accepts(self, screened: list[Candidate], size: tuple[int, int]) -> bool:
         """Whether the screens (``screened``, best first) settle the query without the matcher: the best reaches
@@ -530,11 +538,7 @@ class Reranker:
         accept = self.conf["accept_screen"]
         if c.screen < self.conf["min_screen"] or (accept is not None and c.screen >= accept):
             return False
-        key = self._own_angle(query, c, {})
-        if key is None:
-            return False
-        c.take(*self.screen_pair(query.done[key], self.tile_features([c.tile_id])[c.tile_id]), key, "screen")
-        return True
+        return self._rescreen(query, c)
 
     def weak_screen_turns(self, rr: Reranked) -> bool:
         """After a cascade (and the localizer's window re-alignments) found nothing: the best

@@ -236,6 +236,37 @@ def test_only_a_good_windowed_fix_turns_the_heading(tracked):
     assert turns[0.5] == pytest.approx(10.6)  # a tenth of the way to the fix's 16°
 
 
+def test_a_weak_windowed_fix_nudges_the_carried_scale_less(tracked):
+    """Without metadata a windowed fix nudges the carried ground resolution a share of the way to its own scale
+    (scale_fix_k, in log), weighted like its position (inverse variance of _fix_sigma): a peak at fix_score_ref
+    or above the whole share, a weaker one less. szada-hu seed 4: fixes scoring 0.34-0.40 over changed ground
+    pulled the scale 5 % low at the full share and the track drifted 9.6 m off. The matcher's answer is given here
+    (the policy under test is the tracker's)."""
+    import math
+
+    import numpy as np
+
+    from aeroloc.flight.calibration import Pose
+    from aeroloc.flight.tracker import Tracker
+    from aeroloc.flight.window_fix import WindowFix
+
+    _, _, localizer, _ = tracked
+    image = np.zeros((360, 480, 3), np.uint8)
+    shares = {}
+    for score in (0.3, 0.4, 0.5):
+        tracker = Tracker(localizer)
+        tracker.pose = tracker.calibration = Pose(400.0, 300.0, 10.0, 0.4)
+        tracker.filter.reset(400.0 * tracker.gsd, 300.0 * tracker.gsd, 3.0)
+        tracker.prev_time, tracker.scale_fixes = 0.0, tracker.cfg.scale_first_fixes  # past the first fixes
+        tracker.matcher = lambda *a, _s=score, **k: WindowFix(400.4, 300.0, 10.0, 0.44, _s, 1.6, (200, 200))
+        status, fused = tracker._window_fix(image, (480, 360))
+        assert fused and not tracker.metric, status
+        shares[score] = math.log(tracker.pose.scale / 0.4) / math.log(0.44 / 0.4)
+    k = tracker.cfg.scale_fix_k
+    assert shares[0.4] == pytest.approx(k) and shares[0.5] == pytest.approx(k)
+    assert shares[0.3] == pytest.approx(k * (0.3 / 0.4) ** 3)  # (sigma at 0.4 / sigma at 0.3)^2
+
+
 def test_the_compass_turn_between_frames_wraps_around_north(tracked):
     from dataclasses import replace
 

@@ -49,7 +49,8 @@ class TrackConfig:
     scale_score: float = 0.35  # fixes at least this good measure the odometry's scale over long baselines
     scale_fix_score: float = 0.3  # without metadata, accepted fixes at least this good nudge the ground resolution
     # (until a baseline confirms it)
-    scale_fix_k: float = 0.1  # ... this share of the way to their refined scale (in log)
+    scale_fix_k: float = 0.1  # ... this share of the way to their refined scale (in log), times the fix's weight
+    # (fix sigma at fix_score_ref / its own, squared: a peak scoring 0.3 moves it 0.42 of that; at 0.4 and above all)
     scale_first_fixes: int = 3  # ... the first this many after a global fix refined over scale_first_ladder and
     scale_first_k: float = 0.5  # ... taken this share of the way (NAIP: the pipeline's first fix 8 % small, k = 0.1
     # from the tracking ladder left it 3-4 % small for 30 frames, the track 20-29 m off over changed ground)
@@ -448,7 +449,9 @@ class Tracker:
         turn = fix.turn_deg if fix.score >= self.cfg.turn_fix_score else None
         self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, turn, None, k=0.1)
         if scale is not None:
-            k = self.cfg.scale_first_k if first else self.cfg.scale_fix_k
+            # a weak peak pulls the scale less, as it pulls the position less (its sigma, _fix_sigma): inverse variance
+            weight = (self._fix_sigma(1.0) / self._fix_sigma(fix.score)) ** 2
+            k = self.cfg.scale_first_k if first else self.cfg.scale_fix_k * weight
             self.pose = blend(self.pose, self.pose.x, self.pose.y, None, scale, k=k)
             self.scale_fixes += 1
         self.calibration, self.cal_time, self.turn_time = self.pose, self.prev_time, self.prev_time

@@ -451,16 +451,20 @@ class Reranker:
     def _screen_angle(self, c: Candidate, turn_deg: float) -> float | None:
         """The OpenCV angle that turns the query map-aligned by ``c``'s screen transform, when its screen settled
         a heading (``min_screen``) and that angle lies ``screen_turn_min_deg`` or more off the turn it was
-        screened at (``turn_deg`` + its rotation); else None. levir-tx/any, no prior: levir_any_4_06 looks 65°,
-        its true tile screened 25 inliers at the 90° turn and the matcher 3 there (25° of residual turn)."""
+        screened at (:meth:`_left_turn`); else None. levir-tx/any, no prior: levir_any_4_06 looks 65°, its true
+        tile screened 25 inliers at the 90° turn and the matcher 3 there (25° of residual turn)."""
+        return self._left_turn(c, turn_deg) if c.screen >= self.conf["min_screen"] else None
+
+    def _left_turn(self, c: Candidate, turn_deg: float) -> float | None:
+        """The OpenCV angle that turns the query map-aligned by ``c``'s screen transform, when it lies
+        ``screen_turn_min_deg`` or more off the turn ``c`` was screened at (``turn_deg`` + its rotation); None
+        without a transform, for a candidate screened at an exact angle already, or nearer than that."""
         from aeroloc.localization.structure_refine import placement_of
 
-        if c.H is None or c.screen < self.conf["min_screen"] or c.rot_k >= 2 * DIAGONAL:
+        if c.H is None or c.rot_k >= 2 * DIAGONAL:
             return None
         angle = placement_of(c.H)[0]
-        if not np.isfinite(angle) or turn_gap(angle - float(turn_deg), c.rot_k) < self.conf.get(
-            "screen_turn_min_deg", 10.0
-        ):
+        if not np.isfinite(angle) or turn_gap(angle - float(turn_deg), c.rot_k) < self.conf["screen_turn_min_deg"]:
             return None
         return angle
 
@@ -478,15 +482,10 @@ class Reranker:
         -> key, updated) share its extraction. None when ``c`` has no screen transform or its angle lies within
         ``screen_turn_min_deg`` of the turn it was screened at: there the screen already saw the query at its
         own angle."""
-        from aeroloc.localization.structure_refine import placement_of
-
-        near_deg = self.conf["screen_turn_min_deg"]
-        if c.H is None or c.rot_k >= 2 * DIAGONAL:
+        angle = self._left_turn(c, query.turn_deg)
+        if angle is None:
             return None
-        angle = placement_of(c.H)[0]
-        if not np.isfinite(angle) or turn_gap(angle - query.turn_deg, c.rot_k) < near_deg:
-            return None
-        near = [k for a, k in keys.items() if turn_gap(angle - a, 0) < near_deg]
+        near = [k for a, k in keys.items() if turn_gap(angle - a, 0) < self.conf["screen_turn_min_deg"]]
         return near[0] if near else keys.setdefault(angle, query.at_angle(angle))
 
     def screen_is_noise(self, query: QueryFeatures, c: Candidate) -> bool:

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from aeroloc.core import geo
-from aeroloc.core.frames import turned
+from aeroloc.core.frames import inverse_turn, turned
 from aeroloc.core.images import read_image
 from aeroloc.core.queries import load_queries
 from aeroloc.localization.alignment import align
 from aeroloc.localization.cascade import Reranker
-from aeroloc.matching.features import DIAGONAL, inverse_turn, rotation_angle
+from aeroloc.matching.features import DIAGONAL, rotation_angle
 from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.retriever import Retriever
 

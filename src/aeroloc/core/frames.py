@@ -20,6 +20,13 @@ DIAGONAL = 4  # rotation indices 4-7: the quarter turn (index - 4) and 45° more
 TILE_TURNS = tuple(range(1, 2 * DIAGONAL))
 
 
+def inverse_turn(rot_k: int) -> int:
+    """The rotation index that turns by minus ``rot_k``'s angle: the query turned by ``rot_k`` against an upright
+    tile is the upright query against the tile turned by ``inverse_turn(rot_k)`` (one photo, one extraction)."""
+    k = rot_k % 8
+    return (4 - k) % 4 if k < DIAGONAL else DIAGONAL + (3 - (k - DIAGONAL)) % 4
+
+
 def rotation_angle(rot_k: int) -> float:
     """The counter-clockwise turn (degrees) of rotation index ``rot_k``: 0-3 quarter turns, 4-7 diagonals."""
     return 90.0 * (rot_k % 4) + (45.0 if rot_k % 8 >= DIAGONAL else 0.0)

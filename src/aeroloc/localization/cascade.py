@@ -43,8 +43,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aeroloc.core.frames import inverse_turn
 from aeroloc.localization.agreement import screen_agreed
-from aeroloc.matching.features import DIAGONAL, extract, inverse_turn, to_original, turn_gap, turned_name
+from aeroloc.matching.features import DIAGONAL, extract, to_original, turn_gap, turned_name
 from aeroloc.matching.registry import build_reranker, feature_overrides, rerank_conf
 
 
@@ -121,6 +122,7 @@ class Screens:
         self._screen_pair, self._pair, self._pool = screen_pair, pair, pool
         self._cheap = cheap or (lambda t, k: False)
         self._ahead: dict[tuple[str, int], Future] = {}
+        self.asked: set[tuple[str, int]] = set()  # (tile, rotation) pairs the caller has had
 
     def ahead(self, pairs, guess: bool = False) -> None:
         """Start the screens of ``pairs`` ((tile id, rotation)) on the pool; their features (``pair(tile id,
@@ -130,11 +132,12 @@ class Screens:
         if self._pool is None:
             return
         for t, k in pairs:
-            if (t, k) not in self._ahead and (not guess or self._cheap(t, k)):
+            if (t, k) not in self._ahead and (t, k) not in self.asked and (not guess or self._cheap(t, k)):
                 self._ahead[(t, k)] = self._pool.submit(self._screen_pair, *self._pair(t, k))
 
     def __call__(self, tile_id: str, k: int):
         """The screen of ``tile_id`` at rotation ``k``: (inliers, H, matches, visualisation)."""
+        self.asked.add((tile_id, k))
         f = self._ahead.pop((tile_id, k), None)
         return f.result() if f is not None else self._screen_pair(*self._pair(tile_id, k))
 
@@ -374,7 +377,15 @@ class Reranker:
 
         return family
 
-    def _screen(self, cands: list[Candidate], rots: list[int], screens: Screens, families=None) -> int:
+    def _screen(
+        self,
+        cands: list[Candidate],
+        rots: list[int],
+        screens: Screens,
+        families=None,
+        turn_scores=None,
+        own_angle=None,
+    ) -> int:
         """Stage 1 in place on ``cands``; returns the number of (candidate, rotation) pairs screened.
 
         Rotation-major on the first ``rotation_probe`` candidates: all of them at the upright rotation first, the
@@ -384,7 +395,12 @@ class Reranker:
         id -> its rotations, :meth:`_families`; the heading unknown) the probe tries all eight rotations, and a
         later candidate, while the heading is not settled, its own list. ``screens`` computes them (ahead of this
         order on a second core where the process has one: the probe's candidates at a rotation together, and the
-        next candidate at the settled rotation while one is screened).
+        next candidate at the settled rotation while one is screened). With ``turn_scores`` too (the retrieval's
+        similarity per tile and turn) the first ``turn_score_screens`` pairs in :meth:`_turn_score_pairs`' order
+        go first, until one settles a heading; ``own_angle`` (candidate -> the key of the query turned by its
+        screen's own angle, or None) then screens the settling candidate again at its own angle, and every
+        candidate is screened at the better of the two. The loop below runs only when none settled a heading,
+        and never screens a pair twice.
         """
         c_ = self.conf
         best = {"rot": rots[0], "score": -1}
@@ -392,6 +408,8 @@ class Reranker:
 
         def screen(c: Candidate, k: int) -> bool:
             nonlocal n
+            if (c.tile_id, k) in screens.asked:  # screened in the turn-score order already (it did not exit)
+                return False
             c.take(*screens(c.tile_id, k), k, "screen")
             n += 1
             if c.screen > best["score"] and c.rot_k == k:
@@ -399,6 +417,23 @@ class Reranker:
             return c.screen >= c_["early_exit"]
 
         probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]) :]
+        if families is not None and turn_scores and c_["turn_score_screens"]:
+            ordered = self._turn_score_pairs(probe, cands, turn_scores)[: c_["turn_score_screens"]]
+            for i, (c, k) in enumerate(ordered):
+                screens.ahead(((d.tile_id, j) for d, j in ordered[i : i + 2]), guess=True)
+                if screen(c, k):
+                    return n + self._after_exit(cands, k, screens, at_turn=True)
+                if best["score"] >= c_["min_screen"]:  # the heading settled: every candidate at its turn
+                    key = own_angle(c) if own_angle is not None else None
+                    if key is not None and screen(c, key):  # the query turned as the settling screen says
+                        return n + self._after_exit(cands, key, screens, at_turn=True)
+                    k = best["rot"]
+                    tail = [d for d in cands if (d.tile_id, k) not in screens.asked]
+                    for j, d in enumerate(tail):
+                        screens.ahead((e.tile_id, k) for e in tail[j : j + 2])
+                        if screen(d, k):
+                            return n + self._after_exit(cands, k, screens, at_turn=True)
+                    return n
 
         def probe_order():
             # every rotation on the probe, the first candidate's family first, but upright first of all: most
@@ -436,13 +471,34 @@ class Reranker:
                     return n + self._after_exit(cands, k, screens)
         return n
 
-    def _after_exit(self, cands: list[Candidate], k: int, screens: Screens) -> int:
+    def _turn_score_pairs(self, probe: list[Candidate], cands: list[Candidate], turn_scores: dict) -> list:
+        """(candidate, rotation) pairs in the order to screen a photo of unknown heading: the ``probe`` upright
+        (most photos are near north-up, and over all turns the turned views of other places outscore a north-up
+        photo's true tile), then every pair the turned retrieval scored (``turn_scores``: tile id -> {rotation:
+        the query's global similarity to the tile at it}), best first; ties by retrieval rank, then rotation.
+        Screened in this order, the pair that settled a heading came at a median of 19 screens on NAIP
+        dev-rotated (82 in the probe-then-candidates order), 6 on levir-tx/any (16), 1 on szada-hu/any (8), and
+        still 1 on levir-tx/north, a north-up set (README #13, "Screens in the order of the turned retrieval")."""
+        first = [(c, 0) for c in probe]
+        scored = sorted(
+            (-s, c.retrieval_rank, k, c.tile_id)
+            for c in cands
+            for k, s in turn_scores.get(c.tile_id, {}).items()
+            if k < 2 * DIAGONAL and not (k == 0 and c.retrieval_rank < len(probe))
+        )
+        by_id = {c.tile_id: c for c in cands}
+        return first + [(by_id[t], k) for _, _, k, t in scored]
+
+    def _after_exit(self, cands: list[Candidate], k: int, screens: Screens, at_turn: bool = False) -> int:
         """After an early exit at rotation ``k``: the next ``after_exit`` unvisited candidates (retrieval order)
         screened at ``k``, so that a repeated place ranked after the first strong one can still rival it
         (aeroloc.localization.localizer.Localizer._rival) or beat it. On szada-hu/any (rough priors) a forest
         edge 546 m from the truth screened 45-55 inliers at retrieval rank 1-3 and ended the screen; the true
-        tiles, at ranks 2-10, screened 30-67. Returns the number screened."""
-        more = [c for c in cands if c.screen < 0][: self.conf["after_exit"]]
+        tiles, at ranks 2-10, screened 30-67. ``at_turn``: the next candidates not screened at ``k`` yet, visited
+        or not (after the turn-score order, which visits candidates at other turns first). Returns the number
+        screened."""
+        fresh = (lambda c: (c.tile_id, k) not in screens.asked) if at_turn else (lambda c: c.screen < 0)
+        more = [c for c in cands if fresh(c)][: self.conf["after_exit"]]
         screens.ahead((c.tile_id, k) for c in more)
         for c in more:
             c.take(*screens(c.tile_id, k), k, "screen")
@@ -590,13 +646,15 @@ class Reranker:
         rotations=None,
         turn_deg: float = 0.0,
         query: QueryFeatures | None = None,
+        turn_scores: dict[str, dict[int, float]] | None = None,
     ) -> Reranked:
         """Re-rank ``tile_ids`` for ``image``; ``rotations`` (indices of aeroloc.matching.features.rotation_angle:
         0-3 quarter turns CCW, 4-7 diagonals) overrides the conf's, e.g. the one a heading prior points at;
         ``turn_deg`` (OpenCV degrees) turns the query exactly before them (a heading prior's own angle).
         ``query``: the photo's features extracted so far (:meth:`query_features`), used when it holds this image
         at this turn; otherwise each rotation is extracted on first use (an upright photo that matches costs one
-        extraction). Transforms relate the original image whatever the turn."""
+        extraction). ``turn_scores`` (the retrieval's per-turn similarities, aeroloc.retrieval.retriever.Retrieval)
+        order the screens of a photo of unknown heading (:meth:`_turn_score_pairs`). Transforms relate the original image whatever the turn."""
         t0 = time.perf_counter()
         tfs = self.tile_features(tile_ids)
         t_tiles = time.perf_counter() - t0  # tile features (store reads); query extraction is added below
@@ -617,7 +675,8 @@ class Reranker:
                 lambda t, k: k in query.done or self._turned_tile_screens(query, k, t),
             )
             try:
-                n_screened = self._screen(cands, rots, screens, families)
+                own = (lambda c: self._own_angle(query, c, {})) if self.conf["own_angle_rescreen"] else None
+                n_screened = self._screen(cands, rots, screens, families, turn_scores, own)
             finally:
                 screens.close()
             screened = sorted((c for c in cands if c.screen >= 0), key=_by_screen)

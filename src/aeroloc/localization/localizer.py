@@ -175,7 +175,7 @@ class Localizer:
             out.lat, out.lon = self.db.by_id[r.tile_ids[0]].centre_latlon
             out.status = "retrieval only"
             return out
-        self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms, query)
+        self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms, query, r.turn_scores)
         if not out.localized and AMBIGUOUS not in out.status:
             self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
         ambiguous = AMBIGUOUS in out.status  # two places match: no later stage may pick one of them
@@ -206,11 +206,14 @@ class Localizer:
         if new:
             self._cascade(image, new, top_k, priors, out, query=query)
 
-    def _cascade(self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms=0.0, query=None):
+    def _cascade(
+        self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms=0.0, query=None, turns=None
+    ):
         """Re-rank the retrieved tiles at the quarter turns the heading allows, align the best one into ``out``;
-        ``query``: the photo's features extracted so far (aeroloc.localization.cascade.QueryFeatures)."""
+        ``query``: the photo's features extracted so far (aeroloc.localization.cascade.QueryFeatures); ``turns``:
+        the retrieval's per-turn similarities (the order of the screens when the heading is unknown)."""
         rotations, turn = prior_turn(priors, self._diagonals)
-        rr = self.reranker(image, tile_ids, top_k, rotations=rotations, turn_deg=turn, query=query)
+        rr = self.reranker(image, tile_ids, top_k, rotations=rotations, turn_deg=turn, query=query, turn_scores=turns)
         _add_times(out, rr.times_ms)
         self._place(image, rr, out, extra_ms)
         if not out.localized and AMBIGUOUS not in out.status:  # weak screens at their own angle, then again

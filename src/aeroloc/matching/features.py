@@ -39,13 +39,6 @@ def turn_gap(angle_deg: float, rot_k: int) -> float:
     return abs((angle_deg - rotation_angle(rot_k) + 180.0) % 360.0 - 180.0)
 
 
-def inverse_turn(rot_k: int) -> int:
-    """The rotation index that turns by minus ``rot_k``'s angle: the query turned by ``rot_k`` against an upright
-    tile is the upright query against the tile turned by ``inverse_turn(rot_k)`` (one photo, one extraction)."""
-    k = rot_k % 8
-    return (4 - k) % 4 if k < DIAGONAL else DIAGONAL + (3 - (k - DIAGONAL)) % 4
-
-
 def turned_name(tile_id: str, rot_k: int) -> str:
     """The name of a tile's features at rotation index ``rot_k`` in a turned tile store."""
     return f"{tile_id}|{rot_k}"

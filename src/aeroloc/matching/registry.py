@@ -103,6 +103,12 @@ CASCADE_DEFAULTS = {
     # screen and match a photo of unknown heading upright against tiles turned back, when the database holds
     # them (aeroloc build --local-turns; aeroloc.localization.cascade.Reranker._pair); False: the query turned
     "turned_tiles": True,
+    # a photo of unknown heading whose retrieval searched the turned tiles: up to this many (candidate, turn)
+    # pairs screened first, in the order of the query's global similarity to each tile at that turn, until one
+    # settles a heading; then every candidate at that turn (aeroloc.localization.cascade.Reranker.
+    # _turn_score_pairs). Unsettled after them, the rotation probe and each candidate at its turns follow, in
+    # retrieval order, as without turned tiles. 0: off
+    "turn_score_screens": 24,
     "tile_cache": 128,  # tiles whose decoded features stay in memory between queries (~0.55 MB each)
     "extractor": {},  # overrides of the extractor conf (e.g. max_keypoints), see EXTRACTORS and reranker_conf
     "matcher": {},  # overrides of the matcher conf
@@ -198,6 +204,7 @@ INTEGER_OPTIONS = (
     ("weak_screen_min", 0, False),
     ("accept_agreed", 0, True),
     ("screen_homography_min", 0, True),
+    ("turn_score_screens", 0, False),
 )
 # switches: a string such as "false" would otherwise count as on
 BOOL_OPTIONS = ("diagonals", "screen", "turned_tiles", "own_angle_rescreen")

@@ -40,7 +40,7 @@ from itertools import zip_longest
 import numpy as np
 
 from aeroloc.core.errors import AerolocError
-from aeroloc.core.frames import TILE_TURNS
+from aeroloc.core.frames import TILE_TURNS, inverse_turn
 from aeroloc.retrieval.database import Database
 from aeroloc.retrieval.descriptors import describe_image
 from aeroloc.retrieval.index import search
@@ -60,6 +60,9 @@ class Retrieval:
     tile_ids: list[str]
     scores: list[float]
     times_ms: dict = field(default_factory=dict)  # descriptor, search
+    # tile id -> {rotation index: score}: the query's similarity to the tile at each turn the turned search
+    # found it at (:meth:`Retriever.fuse_turned`; rotation indices as the re-ranker turns the query), else None
+    turn_scores: dict[str, dict[int, float]] | None = None
 
 
 def check_rotations(rotations) -> int:
@@ -225,8 +228,13 @@ class Retriever:
         pos = self.db.position
         upright_pos = [pos[t] for t in upright.tile_ids]
         best = dict(zip(upright_pos, upright.scores))
+        by_turn: dict[int, dict[int, float]] = {j: {0: v} for j, v in best.items()}
         for r, v in zip(rows[0].tolist(), scores[0].tolist()):
-            if r >= 0 and v > best.get(r // n_turns, -np.inf):
+            if r < 0:
+                continue
+            # the upright query against the tile turned by TILE_TURNS[i] is the query turned back against the tile
+            by_turn.setdefault(r // n_turns, {}).setdefault(inverse_turn(TILE_TURNS[r % n_turns]), v)
+            if v > best.get(r // n_turns, -np.inf):
                 best[r // n_turns] = v
         by_turns = sorted(best, key=lambda j: (-best[j], j))[:top_n]
         lead = by_turns[:TURNED_LEAD]
@@ -234,7 +242,9 @@ class Retriever:
         fused = list(dict.fromkeys(fused + by_turns))
         fused = fused[:top_n] if cut else fused
         ms = upright.times_ms.get("search", 0.0) + (time.perf_counter() - t0) * 1000
-        return Retrieval([self.db.tiles[j].id for j in fused], [float(best[j]) for j in fused], {"search": ms})
+        ids = [self.db.tiles[j].id for j in fused]
+        turns = {t: by_turn[j] for t, j in zip(ids, fused)}
+        return Retrieval(ids, [float(best[j]) for j in fused], {"search": ms}, turns)
 
     def __call__(
         self,

@@ -163,7 +163,7 @@ def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_
         with pytest.raises(AerolocError, match=r"screen_threads must be None or an integer >= 1, got "):
             LocalizeOptions(rerank_overrides={"screen_threads": threads})
     assert LocalizeOptions(rerank_overrides={"screen_threads": 1}).cascade_conf()["screen_threads"] == 1
-    for key in ("tile_cache", "weak_screen_turns", "weak_screen_min"):
+    for key in ("tile_cache", "weak_screen_turns", "weak_screen_min", "turn_score_screens"):
         for bad in (-1, 2.5, "3", None, False):
             with pytest.raises(AerolocError, match=rf"{key} must be an integer >= 0, got "):
                 LocalizeOptions(rerank_overrides={key: bad})

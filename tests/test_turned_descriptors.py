@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from aeroloc.core.frames import TILE_TURNS, rotation_angle
+from aeroloc.core.frames import TILE_TURNS, inverse_turn, rotation_angle
 from aeroloc.localization.localizer import Localizer
 from aeroloc.localization.options import LocalizeOptions
 from aeroloc.maps.windows import turned_windows
@@ -129,6 +129,19 @@ def test_a_turned_copy_of_a_tile_is_retrieved_and_the_upright_top_1_stays_first(
     assert ret.fuse_turned(desc, upright, 10).tile_ids == fused.tile_ids[:10]  # cut at N: its first N
     plain = Retriever(Database(turned_db.folder), METHOD)
     assert plain(photo, 10).tile_ids == upright.tile_ids  # ``turned`` off: the upright ranking as before
+
+
+def test_the_turned_retrieval_scores_each_tile_at_each_turn_it_found_it_at(turned_db):
+    """A photo of tile 17 taken by a camera turned 135°: its turned retrieval scores that tile best at the rotation
+    that sets the photo upright (what the re-ranker screens first), and every upright score is rotation 0's."""
+    ret = Retriever(turned_db, METHOD)
+    t = turned_db.tiles[17]
+    photo = next(turned_windows(turned_db.source.map(), [t], [rotation_angle(5)]))
+    upright, fused = ret(photo, 10), ret(photo, 10, turned=True)
+    scores = fused.turn_scores[t.id]
+    assert max(scores, key=scores.get) == inverse_turn(5) and scores[inverse_turn(5)] > 0.99, scores
+    assert all(fused.turn_scores[u][0] == s for u, s in zip(upright.tile_ids, upright.scores))
+    assert set(fused.turn_scores) == set(fused.tile_ids) and upright.turn_scores is None
 
 
 def test_the_localizer_fuses_only_when_the_heading_is_unknown(turned_db):

@@ -97,3 +97,14 @@ def test_local_turns_without_a_reranker_is_refused_in_one_line(naip_map, tmp_pat
     err = capsys.readouterr().err.strip()
     assert code != 0 and "--local-turns needs --local" in err and "\n" not in err
     assert not (tmp_path / "db").exists()  # refused before anything was built
+
+
+def test_screens_of_an_unknown_heading_go_upright_on_the_probe_then_by_turn_score():
+    """The probe's candidates upright first (a north-up photo settles there), then every (candidate, turn) the
+    turned retrieval scored, best first; ties by retrieval rank; no pair twice, no exact-angle key."""
+    from aeroloc.localization.cascade import Candidate, turn_score_pairs
+
+    cands = [Candidate(t, i) for i, t in enumerate("abcd")]
+    scores = {"a": {0: 0.5, 3: 0.9}, "b": {0: 0.7, 6: 0.9}, "c": {2: 0.95}, "d": {0: 0.4, 9: 1.0}}
+    pairs = [(c.tile_id, k) for c, k in turn_score_pairs(cands[:2], cands, scores)]
+    assert pairs == [("a", 0), ("b", 0), ("c", 2), ("a", 3), ("b", 6), ("d", 0)]

@@ -111,6 +111,26 @@ def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_sim: float = 0.0) -> np.ndarra
     return mnn(d0, d1, min_sim)[0]
 
 
+def turn_score_pairs(probe: list[Candidate], cands: list[Candidate], turn_scores: dict) -> list:
+    """(candidate, rotation) pairs in the order to screen a photo of unknown heading: the ``probe`` upright
+    (most photos are near north-up, and over all turns the turned views of other places outscore a north-up
+    photo's true tile), then every pair the turned retrieval scored (``turn_scores``: tile id -> {rotation:
+    the query's global similarity to the tile at it}), best first; ties by retrieval rank, then rotation.
+    Replayed on every candidate's screens at all eight turns (no priors), the pair that settles a heading comes
+    at a median of 19 / 6 / 1 screens in this order on NAIP dev-rotated / levir-tx/any / szada-hu/any, against
+    82 / 16 / 8 with the probe and then each candidate at its turns in retrieval order; on levir-tx/north, a
+    north-up set, at 1 either way (README #13, "Screens in the order of the turned retrieval")."""
+    first = [(c, 0) for c in probe]
+    scored = sorted(
+        (-s, c.retrieval_rank, k, c.tile_id)
+        for c in cands
+        for k, s in turn_scores.get(c.tile_id, {}).items()
+        if k < 2 * DIAGONAL and not (k == 0 and c.retrieval_rank < len(probe))
+    )
+    by_id = {c.tile_id: c for c in cands}
+    return first + [(by_id[t], k) for _, _, k, t in scored]
+
+
 class Screens:
     """Screen results by (tile, rotation), each computed once: in the caller's order, or ahead of it on a second
     core. A screen is a pure function of its two feature sets (mutual nearest neighbours, then MAGSAC and RANSAC,
@@ -396,7 +416,7 @@ class Reranker:
         later candidate, while the heading is not settled, its own list. ``screens`` computes them (ahead of this
         order on a second core where the process has one: the probe's candidates at a rotation together, and the
         next candidate at the settled rotation while one is screened). With ``turn_scores`` too (the retrieval's
-        similarity per tile and turn) the first ``turn_score_screens`` pairs in :meth:`_turn_score_pairs`' order
+        similarity per tile and turn) the first ``turn_score_screens`` pairs in :func:`turn_score_pairs`' order
         go first, until one settles a heading; ``own_angle`` (candidate -> the key of the query turned by its
         screen's own angle, or None) then screens the settling candidate again at its own angle, and every
         candidate is screened at the better of the two. The loop below runs only when none settled a heading,
@@ -418,7 +438,7 @@ class Reranker:
 
         probe, rest = cands[: max(1, c_["rotation_probe"])], cands[max(1, c_["rotation_probe"]) :]
         if families is not None and turn_scores and c_["turn_score_screens"]:
-            ordered = self._turn_score_pairs(probe, cands, turn_scores)[: c_["turn_score_screens"]]
+            ordered = turn_score_pairs(probe, cands, turn_scores)[: c_["turn_score_screens"]]
             for i, (c, k) in enumerate(ordered):
                 screens.ahead(((d.tile_id, j) for d, j in ordered[i : i + 2]), guess=True)
                 if screen(c, k):
@@ -470,24 +490,6 @@ class Reranker:
                 if screen(c, k):
                     return n + self._after_exit(cands, k, screens)
         return n
-
-    def _turn_score_pairs(self, probe: list[Candidate], cands: list[Candidate], turn_scores: dict) -> list:
-        """(candidate, rotation) pairs in the order to screen a photo of unknown heading: the ``probe`` upright
-        (most photos are near north-up, and over all turns the turned views of other places outscore a north-up
-        photo's true tile), then every pair the turned retrieval scored (``turn_scores``: tile id -> {rotation:
-        the query's global similarity to the tile at it}), best first; ties by retrieval rank, then rotation.
-        Screened in this order, the pair that settled a heading came at a median of 19 screens on NAIP
-        dev-rotated (82 in the probe-then-candidates order), 6 on levir-tx/any (16), 1 on szada-hu/any (8), and
-        still 1 on levir-tx/north, a north-up set (README #13, "Screens in the order of the turned retrieval")."""
-        first = [(c, 0) for c in probe]
-        scored = sorted(
-            (-s, c.retrieval_rank, k, c.tile_id)
-            for c in cands
-            for k, s in turn_scores.get(c.tile_id, {}).items()
-            if k < 2 * DIAGONAL and not (k == 0 and c.retrieval_rank < len(probe))
-        )
-        by_id = {c.tile_id: c for c in cands}
-        return first + [(by_id[t], k) for _, _, k, t in scored]
 
     def _after_exit(self, cands: list[Candidate], k: int, screens: Screens, at_turn: bool = False) -> int:
         """After an early exit at rotation ``k``: the next ``after_exit`` unvisited candidates (retrieval order)
@@ -654,7 +656,7 @@ class Reranker:
         ``query``: the photo's features extracted so far (:meth:`query_features`), used when it holds this image
         at this turn; otherwise each rotation is extracted on first use (an upright photo that matches costs one
         extraction). ``turn_scores`` (the retrieval's per-turn similarities, aeroloc.retrieval.retriever.Retrieval)
-        order the screens of a photo of unknown heading (:meth:`_turn_score_pairs`). Transforms relate the original image whatever the turn."""
+        order the screens of a photo of unknown heading (:func:`turn_score_pairs`). Transforms relate the original image whatever the turn."""
         t0 = time.perf_counter()
         tfs = self.tile_features(tile_ids)
         t_tiles = time.perf_counter() - t0  # tile features (store reads); query extraction is added below

@@ -105,8 +105,8 @@ CASCADE_DEFAULTS = {
     "turned_tiles": True,
     # a photo of unknown heading whose retrieval searched the turned tiles: up to this many (candidate, turn)
     # pairs screened first, in the order of the query's global similarity to each tile at that turn, until one
-    # settles a heading; then every candidate at that turn (aeroloc.localization.cascade.Reranker.
-    # _turn_score_pairs). Unsettled after them, the rotation probe and each candidate at its turns follow, in
+    # settles a heading; then every candidate at that turn (aeroloc.localization.cascade.turn_score_pairs).
+    # Unsettled after them, the rotation probe and each candidate at its turns follow, in
     # retrieval order, as without turned tiles. 0: off
     "turn_score_screens": 24,
     "tile_cache": 128,  # tiles whose decoded features stay in memory between queries (~0.55 MB each)

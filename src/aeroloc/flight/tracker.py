@@ -93,6 +93,15 @@ class TrackConfig:
     vote_m: float = 15.0  # ... within max(this, 3 map px)
     vote_turn_deg: float = 6.0  # ... and this turn
     trim_native: bool = True  # after a whole-map search, native heap returned to the system (glibc malloc_trim)
+    confirm_below: float = 0.35  # a windowed fix scoring below this is checked by local features
+    # (aeroloc.flight.confirm_fix) on every ``confirm_every``-th such fix (~0.1-0.2 s each), and so is each of the
+    # first ``confirm_first`` fixes after a re-localization, whatever its score; confirmed with ``confirm_inliers``,
+    # it is placed where they put the frame, pulls the track as a fix scoring fix_score_ref would, and moves the
+    # heading and (without metadata, before a baseline) the ground resolution ``confirm_k`` of the way to theirs
+    confirm_every: int = 5  # 0: off
+    confirm_first: int = 3
+    confirm_inliers: int = 40  # (windows without the frame's ground: <= 15 in the sweep's confirmations)
+    confirm_k: float = 0.5
 
 
 @dataclass
@@ -192,6 +201,8 @@ class Tracker:
         self.lost_since: float | None = None
         self.rejected: list[tuple[float, float]] = []  # offsets fix - prediction (m) of the fixes rejected in a row
         self.frames_since_fix = 0
+        self.weak_fixes = 0  # weak windowed fixes since the last local-feature check of one (confirm_every)
+        self.checks_left = 0  # windowed fixes still to check by local features since a re-localization
         self.baseline = BaselineScale()  # the odometry's scale from fix-to-fix baselines (frames without a height)
         self.metric = False  # whether this frame's scale came from its own metadata
         self.scale_settled = False  # a baseline confirmed the scale since the last global fix (fixes stop nudging it)
@@ -371,6 +382,7 @@ class Tracker:
         self.baseline.broken()
         self.baseline.checked = self.scale_settled = False
         self.scale_fixes = 0
+        self.checks_left = self.cfg.confirm_first
         return status, True
 
     def _pipeline_within(self, ref: FrameRef, image, priors: Priors) -> tuple[Pose | None, str]:
@@ -416,7 +428,10 @@ class Tracker:
             self.filter.misses += 1
             return "odometry (no distinct match in the window)", False
         self.filter.misses = 0
-        sigma_fix = self._fix_sigma(fix.score)
+        checked, n_checked = self._confirmed_fix(image, fix)
+        if checked is not None:  # local features placed the frame: there, as trusted as a fix of fix_score_ref
+            fix = replace(fix, x=checked.x, y=checked.y)
+        sigma_fix = self._fix_sigma(self.cfg.fix_score_ref if checked is not None else fix.score)
         e = self.filter.est
         offset = (fix.x * self.gsd - e.x, fix.y * self.gsd - e.y)
         ok, d = self.filter.update(fix.x * self.gsd, fix.y * self.gsd, sigma_fix)
@@ -430,6 +445,8 @@ class Tracker:
         else:
             self.rejected.clear()
             status = f"window fix (score {fix.score:.2f}, {d:.1f} m from the prediction)"
+            if checked is not None:
+                status = status[:-1] + f", confirmed by {n_checked} local-feature inliers)"
             if fix.score >= self.cfg.scale_score and not self.metric:
                 k = self.baseline.fix(fix.x * self.gsd, fix.y * self.gsd)
                 if k is not None:
@@ -448,6 +465,12 @@ class Tracker:
             scale = self.pose.scale * (fix.scale / at_scale)
         turn = fix.turn_deg if fix.score >= self.cfg.turn_fix_score else None
         self.pose = blend(self.pose, e.x / self.gsd, e.y / self.gsd, turn, None, k=0.1)
+        if ok and checked is not None:  # the local features' heading and scale, measured, not a 3 %-step ladder's
+            cal = not self.metric and not self.scale_settled
+            self.pose = blend(self.pose, self.pose.x, self.pose.y, checked.turn_deg, None, k=self.cfg.confirm_k)
+            if cal:
+                self.pose = blend(self.pose, self.pose.x, self.pose.y, None, checked.scale, k=self.cfg.confirm_k)
+            scale = None
         if scale is not None:
             # a weak peak pulls the scale less, as it pulls the position less (its sigma, _fix_sigma): inverse variance
             weight = (self._fix_sigma(1.0) / self._fix_sigma(fix.score)) ** 2
@@ -457,6 +480,29 @@ class Tracker:
         self.calibration, self.cal_time, self.turn_time = self.pose, self.prev_time, self.prev_time
         self.unseen_turn_s = 0.0
         return status, True
+
+    def _confirmed_fix(self, image, fix) -> tuple[Pose | None, int]:
+        """The frame's pose by local features around a windowed ``fix`` (aeroloc.flight.confirm_fix) and their
+        inliers, on the first ``confirm_first`` fixes after a re-localization and then every ``confirm_every``-th
+        fix scoring under ``confirm_below``; (None, 0) otherwise."""
+        reranker = self.localizer.reranker
+        if reranker is None or not self.cfg.confirm_every:
+            return None, 0
+        if self.checks_left > 0:  # just re-localized: the carried heading and scale are the least sure
+            self.checks_left -= 1
+        elif fix.score >= self.cfg.confirm_below:
+            return None, 0
+        else:
+            self.weak_fixes += 1
+            if self.weak_fixes < self.cfg.confirm_every:
+                return None, 0
+        self.weak_fixes = 0
+        from aeroloc.flight.confirm_fix import confirmed_pose
+        from aeroloc.localization.alignment import reach_m
+
+        reach_px = reach_m(self.gsd) / self.gsd
+        pose, n = confirmed_pose(reranker, self.map, image, fix, self.cfg.confirm_inliers, reach_px)
+        return pose, n
 
     def _fix_sigma(self, score: float) -> float:
         """A windowed fix's error (metres, 1 sigma) from its own correlation score: weak peaks are the ones that
@@ -538,6 +584,7 @@ class Tracker:
         self.baseline.broken()
         self.baseline.checked = self.scale_settled = False
         self.scale_fixes = 0
+        self.checks_left = self.cfg.confirm_first
         self.filter.reset(pose.x * self.gsd, pose.y * self.gsd, self.cfg.filter.global_sigma_m)
         self.anchored = True
         return self._point(ref, "global fix", note + status)

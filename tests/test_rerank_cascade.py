@@ -333,7 +333,8 @@ def test_screens_computed_ahead_on_a_second_thread_change_no_result(db, query):
 def test_a_screen_started_ahead_and_not_asked_for_is_dropped():
     """Screens: what the caller asks for is what it gets (computed ahead or on demand, the same function of
     the two feature sets); screens started ahead that the cascade's order never reaches are cancelled or
-    waited for by close(), so nothing runs on into the next stage."""
+    waited for by close(), so nothing runs on into the next stage; a pair the caller has had is never started
+    ahead again (the turn-score order screens pairs before the probe's loop, which skips them)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from aeroloc.localization.cascade import Screens
@@ -345,15 +346,15 @@ def test_a_screen_started_ahead_and_not_asked_for_is_dropped():
         return (qf * 10 + tf, None, 0, None)
 
     with ThreadPoolExecutor(2) as pool:
-        tfs = {"a": 1, "b": 2, "c": 3}
+        tfs = {"a": 1, "b": 2, "c": 3, "d": 4}
         s = Screens(screen_pair, lambda t, k: (k, tfs[t]), pool, lambda t, k: k == 0)
         s.ahead([("a", 0), ("b", 0), ("c", 5)])
         assert s("b", 0)[0] == 2 and s("a", 0)[0] == 1 and s("a", 1)[0] == 11  # the last one on demand
         s.close()
         assert not s._ahead and len(calls) <= 4
         assert s("c", 5)[0] == 53  # dropped: computed again when asked for after all
-        s.ahead([("b", 0), ("c", 7)], guess=True)  # a guess starts only the cheap pairs
-        assert set(s._ahead) == {("b", 0)}
+        s.ahead([("d", 0), ("c", 7), ("b", 0)], guess=True)  # a guess starts only the cheap pairs, never one had
+        assert set(s._ahead) == {("d", 0)} and ("b", 0) in s.asked
         s.close()
     assert Screens(screen_pair, lambda t, k: (k, 1), None)("a", 2)[0] == 21
 

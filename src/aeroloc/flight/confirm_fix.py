@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from aeroloc.flight.calibration import Pose, pose_from_homography
-from aeroloc.localization.sweep_stage import footprint_window
+from aeroloc.localization.sweep_stage import footprint_window, match_on_window
 from aeroloc.matching.features import extract
 from aeroloc.matching.sweep import Hypothesis
 
@@ -26,25 +26,16 @@ def confirmed_pose(
     reranker, map_, image: np.ndarray, fix, min_inliers: int, reach_px: float
 ) -> tuple[Pose | None, int]:
     """The frame's pose measured by local features around the windowed ``fix`` (x, y map px, turn_deg, scale),
-    and the inliers found: the frame turned by the fix's turn and described at ``query_side``, the map window the
-    fix says it covers described at the same density, the cheap screen first and the re-ranker's matcher when the
-    screen alone is not conclusive (``accept_screen``). None (with the inliers) when fewer than ``min_inliers``
-    hold or the measured centre lies farther than ``reach_px`` map px from the fix."""
+    and the inliers found: the frame turned by the fix's turn against the map window the fix says it covers
+    (aeroloc.localization.sweep_stage.match_on_window, screened from ``weak_screen_min``). None (with the
+    inliers) when fewer than ``min_inliers`` hold or the measured centre lies farther than ``reach_px`` map px
+    from the fix."""
     size = (image.shape[1], image.shape[0])
     window = footprint_window(map_, Hypothesis(fix.x, fix.y, fix.turn_deg, fix.scale, fix.score), size)
     if window is None:
         return None, 0
-    conf = reranker.conf
-    side = int(conf["query_side"])
-    qf = extract(reranker.extractor, image, side, 0, turn_deg=float(fix.turn_deg))
-    w_side = max(16, round(max(window.image.shape[:2]) * side / (fix.scale * max(size))))
-    wf = extract(reranker.extractor, window.image, w_side, 0, mask=window.valid)
-    n, H, _, _ = reranker.screen_pair(qf, wf)
-    accept = conf["accept_screen"]
-    if n < conf["weak_screen_min"]:
-        return None, n
-    if accept is None or n < accept:
-        n, H, _, _ = reranker.match_pair(qf, wf)
+    qf = extract(reranker.extractor, image, int(reranker.conf["query_side"]), 0, turn_deg=float(fix.turn_deg))
+    n, H = match_on_window(reranker, qf, window, fix.scale, size, reranker.conf["weak_screen_min"])
     if H is None or n < min_inliers:
         return None, n
     pose = pose_from_homography(H, size, window.tile.col, window.tile.row)

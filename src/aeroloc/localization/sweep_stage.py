@@ -124,6 +124,23 @@ def confirm(
     return best, (best.inliers if best is not None else most)
 
 
+def match_on_window(reranker, qf: dict, window: Window, scale: float, size: tuple[int, int], screen_min: int):
+    """(inliers, transform: query px -> window px) of query features ``qf`` (described at ``query_side``; the query
+    ``size`` px at ``scale`` map px each) against ``window`` described at the same density: the cheap screen
+    first (mutual nearest neighbours + RANSAC), the re-ranker's learned matcher only when the screen is not
+    clear (below ``accept_screen``). The transform is None when the screen stays under ``screen_min``."""
+    conf = reranker.conf
+    # the window at the query's density: ``side`` px across the query's footprint of scale * max(size) map px
+    w_side = max(16, round(max(window.image.shape[:2]) * int(conf["query_side"]) / (scale * max(size))))
+    wf = extract(reranker.extractor, window.image, w_side, 0, mask=window.valid)
+    n, H, _n_matches, _vis = reranker.screen_pair(qf, wf)
+    if n < screen_min:
+        return n, None
+    if conf["accept_screen"] is None or n < conf["accept_screen"]:
+        n, H, _n_matches, _vis = reranker.match_pair(qf, wf)
+    return n, H
+
+
 def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, floors: tuple[int, int], turned):
     """One confirmation of ``h`` with the query already turned: ``turned`` = (image, mask of its own pixels);
     ``floors`` = (inliers an alignment needs, screen inliers the learned matcher needs)."""
@@ -133,18 +150,10 @@ def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, floors: tuple
     window = footprint_window(map_, h, size)
     if window is None:
         return None, 0
-    conf = reranker.conf
-    side = int(conf["query_side"])
-    qf = extract(reranker.extractor, up, side, 0, mask=mask)
-    # the window at the query's density: ``side`` px across the query's footprint of scale * max(size) map px
-    w_side = max(16, round(max(window.image.shape[:2]) * side / (h.scale * max(size))))
-    wf = extract(reranker.extractor, window.image, w_side, 0, mask=window.valid)
-    # the cheap screen first (mutual nearest neighbours + RANSAC); the learned matcher only when it is not clear
-    n, H, _n_matches, _vis = reranker.screen_pair(qf, wf)
-    if n < screen_min:
+    qf = extract(reranker.extractor, up, int(reranker.conf["query_side"]), 0, mask=mask)
+    n, H = match_on_window(reranker, qf, window, h.scale, size, screen_min)
+    if H is None:
         return None, n
-    if conf["accept_screen"] is None or n < conf["accept_screen"]:
-        n, H, _n_matches, _vis = reranker.match_pair(qf, wf)
     a = align(H, n, size, window.tile, (map_.width, map_.height), min_inliers)
     if not a.localized:
         return None, n

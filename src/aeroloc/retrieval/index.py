@@ -28,6 +28,7 @@ import numpy as np
 
 from aeroloc.core.errors import AerolocError
 from aeroloc.core.io import atomic_write_text
+from aeroloc.retrieval.hugepages import collapse_index
 
 
 def build_index(descriptors: np.ndarray, factory: str = "Flat"):
@@ -152,7 +153,7 @@ class RerankIndex:
     buffer, not memory-mapped, so the store's pages are the kernel's cache, not this process's RAM.
     The top ``k`` equals exact search whenever the exact top ``k`` are among the candidates."""
 
-    def __init__(self, coarse, store: Path, candidates: int):
+    def __init__(self, coarse, store: Path, candidates: int, huge_pages: bool = True):
         import faiss
 
         self.coarse, self.store, self.candidates = coarse, Path(store), int(candidates)
@@ -171,13 +172,15 @@ class RerankIndex:
         # the re-rank's scorer, kept: its code buffer is reused by every query (a fresh 6.5 MB buffer per query
         # paid ~1,600 page faults before the first row landed in it)
         self._scorer = faiss.IndexScalarQuantizer(self.d, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_INNER_PRODUCT)
+        # the walk's random reads of the graph and codes on 2 MB pages (see aeroloc.retrieval.hugepages)
+        self.huge_page_bytes = collapse_index(coarse) if huge_pages else 0
 
     @classmethod
-    def open(cls, path: Path) -> RerankIndex:
+    def open(cls, path: Path, huge_pages: bool = True) -> RerankIndex:
         import faiss
 
         meta = json.loads(_rerank_json(path).read_text())
-        return cls(faiss.read_index(str(path)), path.parent / meta["store"], meta["candidates"])
+        return cls(faiss.read_index(str(path)), path.parent / meta["store"], meta["candidates"], huge_pages)
 
     @property
     def ef_search(self) -> int | None:

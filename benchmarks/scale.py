@@ -328,7 +328,7 @@ def _phases(idx, q: np.ndarray, r: int) -> dict:
 
     faiss.omp_set_num_threads(1)
     proj, inner = idx._projection, idx._projection.inner
-    exact = faiss.IndexScalarQuantizer(idx.d, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_INNER_PRODUCT)
+    exact = idx._scorer
     t = {"projection": [], "walk": [], "read": [], "score": []}
     for x in q:
         c0 = time.thread_time()
@@ -352,27 +352,39 @@ def child_million(npy: Path, index: Path, queries: Path, candidates: str) -> Non
     """Search the 1e6 index one query at a time: ms/query with the store in the page cache, and after its pages
     were dropped from the cache (posix_fadvise DONTNEED on that file only: reads from disk), for each entry of
     ``candidates`` (``R`` or ``R/ef``: R candidates, the graph walked with efSearch ef; by default the built
-    one; a ``:f32`` suffix projects the query with faiss's float32 transforms instead); the CPU of each step (:func:`_phases`); recall@10 vs exact (ids in ``queries`` + ``.exact.npy``);
+    one; a ``:f32`` suffix projects the query with faiss's float32 transforms instead, ``:4k`` searches a second
+    copy of the index left on 4 KB pages); the CPU of each step (:func:`_phases`); recall@10 vs exact (ids in ``queries`` + ``.exact.npy``);
     peak and current RSS of this program."""
-    from aeroloc.retrieval.index import load_index, search
+    from aeroloc.retrieval.index import RerankIndex, load_index, search
 
-    base = _proc_status_mb("VmRSS")
-    idx = load_index(index)
-    loaded = _proc_status_mb("VmRSS")
+    import torch
+
+    torch.set_num_threads(1)  # one query, one thread: the int8 PCA product too (faiss's steps run on one)
+    base, t0 = _proc_status_mb("VmRSS"), time.perf_counter()
+    idx = huge = load_index(index)
+    loaded, load_s = _proc_status_mb("VmRSS"), time.perf_counter() - t0
     q = np.load(queries).astype(np.float32)
     exact = np.load(str(queries).replace(".npy", ".exact.npy"))
     out = {"rss_start_mb": base, "rss_after_load_mb": loaded, "ntotal": idx.ntotal, "n_queries": len(q)}
     built_ef = idx.ef_search
     out["built efSearch"] = built_ef
-    projection = idx._projection
+    out["load s"], out["huge page MB"] = round(load_s, 2), round(idx.huge_page_bytes / 2**20, 1)
+    small_pages = None
     for spec in candidates.split(","):
         spec, f32 = spec.removesuffix(":f32"), spec.endswith(":f32")
+        spec, four_k = spec.removesuffix(":4k"), spec.endswith(":4k")
+        if four_k and small_pages is None:  # ":4k": the same index loaded again, left on 4 KB pages
+            small_pages = RerankIndex.open(index, huge_pages=False)
+        idx = small_pages if four_k else huge
+        projection = idx._projection
         r, ef = (int(v) for v in spec.split("/")) if "/" in spec else (int(spec), built_ef)
         idx.candidates, name = r, (f"R{r}" if ef == built_ef else f"R{r}/ef{ef}") + (" f32 PCA" if f32 else "")
+        name += " 4K pages" if four_k else ""
         if ef is not None:
             idx.ef_search = ef
         idx._projection = None if f32 else projection  # ":f32": the query through faiss's float32 transforms
-        search(idx, q[:5], 10)
+        for i in range(len(q)):  # every query once first: "warm" means every row it reads is in the page cache
+            search(idx, q[i : i + 1], 10)
         for cache in ("warm", "cold"):
             if cache == "cold":
                 fd = os.open(npy, os.O_RDONLY)

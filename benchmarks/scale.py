@@ -355,9 +355,9 @@ def child_million(npy: Path, index: Path, queries: Path, candidates: str) -> Non
     one; a ``:f32`` suffix projects the query with faiss's float32 transforms instead, ``:4k`` searches a second
     copy of the index left on 4 KB pages); the CPU of each step (:func:`_phases`); recall@10 vs exact (ids in ``queries`` + ``.exact.npy``);
     peak and current RSS of this program."""
-    from aeroloc.retrieval.index import RerankIndex, load_index, search
-
     import torch
+
+    from aeroloc.retrieval.index import RerankIndex, load_index, search
 
     torch.set_num_threads(1)  # one query, one thread: the int8 PCA product too (faiss's steps run on one)
     base, t0 = _proc_status_mb("VmRSS"), time.perf_counter()

@@ -82,7 +82,7 @@ def test_collapse_is_a_no_op_where_the_kernel_refuses(monkeypatch):
     """Best effort: a refused madvise (old kernel, no free huge pages) leaves the memory as it was, 0 bytes."""
     from aeroloc.retrieval import hugepages
 
-    monkeypatch.setattr(hugepages, "_madvise", lambda: (lambda *a: -1))
+    monkeypatch.setattr(hugepages, "_madvise", lambda: lambda *a: -1)
     buf = np.ones(3 * HUGE, np.uint8)
     assert collapse(buf.ctypes.data, buf.nbytes) == 0
     monkeypatch.setattr(hugepages, "_madvise", lambda: None)  # not Linux

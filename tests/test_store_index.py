@@ -571,9 +571,11 @@ def test_two_stage_single_query_projects_with_a_compact_pca_matrix(tmp_path, mon
     np.testing.assert_allclose(s1, np.take_along_axis(q @ x16.T, ids1, 1), rtol=0, atol=1e-5)
     _, batch = index.search(q, 10)  # 30 queries: faiss's float32 transforms
     assert np.mean([len(set(a) & set(b)) / 10 for a, b in zip(ids1, batch)]) >= 0.97
-    assert index.ef_search == 256  # EF_SEARCH: more than twice the 60 candidates
-    build_index_from_store(npy, tmp_path / "k.faiss", "PCA32,L2norm,HNSW32,SQ8,Rerank200", chunk=700)
-    assert load_index(tmp_path / "k.faiss").ef_search == 400  # the walk keeps twice the candidates
+    assert index.ef_search == 256  # EF_SEARCH: more than 1.25 x the 60 candidates
+    graph = faiss.downcast_index(faiss.downcast_index(index.coarse).index).hnsw
+    assert graph.efConstruction == 160  # EF_CONSTRUCTION, saved with the graph (faiss's default is 40)
+    build_index_from_store(npy, tmp_path / "k.faiss", "PCA32,L2norm,HNSW32,SQ8,Rerank240", chunk=700)
+    assert load_index(tmp_path / "k.faiss").ef_search == 300  # the walk keeps 1.25 x the candidates
     index.ef_search = 90
     assert faiss.downcast_index(faiss.downcast_index(index.coarse).index).hnsw.efSearch == 90
     build_index_from_store(npy, tmp_path / "j.faiss", "PCA32,IVF16,SQ8,Rerank60")

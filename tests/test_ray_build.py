@@ -1,13 +1,18 @@
 """Sharded builds on a real local Ray cluster (started once for the module, 2 CPUs, no mock): stores and index (the
 turned descriptors too) identical byte for byte to the in-process build, a build interrupted after some shards
-resumes on Ray to the same bytes, a full disk leaves no shard taken as complete, an address that does not answer
-fails in seconds."""
+resumes on Ray to the same bytes, a Ray worker killed mid-build (SIGKILL) loses no finished shard and leaves the
+same bytes, a full disk leaves no shard taken as complete, an address that does not answer fails in seconds."""
 
 from __future__ import annotations
 
 import errno
+import os
 import shutil
+import signal
+import sys
+import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -101,6 +106,54 @@ def test_a_build_interrupted_after_some_shards_resumes_on_ray_to_the_same_bytes(
     kept = next((folder / "local").rglob("00000.h5")).stat().st_mtime_ns
     build_local(Database(folder), RERANK, progress=False, ray="local", shard_size=SHARD)
     assert next((folder / "local").rglob("00000.h5")).stat().st_mtime_ns == kept  # finished shard not redone
+    got, want = _store_files(folder), _store_files(in_process)
+    assert [k for k in want if got.get(k) != want[k]] == []
+
+
+def _build_actor_pids() -> list[int]:
+    """This machine's Ray worker processes running the build's model actors (their title names the class)."""
+    pids = []
+    for p in Path("/proc").iterdir():
+        try:
+            if p.name.isdigit() and b"_ShardActor" in (p / "cmdline").read_bytes():
+                pids.append(int(p.name))
+        except OSError:  # gone meanwhile
+            continue
+    return pids
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds Ray's worker processes in /proc")
+def test_a_ray_worker_killed_mid_build_loses_no_finished_shard_and_gives_the_same_bytes(
+    cluster, tiles_db, in_process, tmp_path
+):
+    folder = tmp_path / "db"
+    shutil.copytree(tiles_db, folder)
+    build_global(Database(folder), METHOD, batch_size=8, progress=False, shard_size=SHARD, turns=True)
+    outcome: dict = {}
+
+    def build():
+        try:
+            build_local(Database(folder), RERANK, progress=False, ray="local", shard_size=SHARD)
+        except AerolocError as exc:
+            outcome["error"] = str(exc)
+
+    worker = threading.Thread(target=build)
+    worker.start()
+    deadline = time.monotonic() + 180
+    while not list((folder / "local").rglob("*.done")) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    first = {p.name: p.stat().st_mtime_ns for p in (folder / "local").rglob("*.done")}
+    killed = _build_actor_pids()
+    for pid in killed:  # every actor of the build, mid-way: no cleanup, no goodbye
+        os.kill(pid, signal.SIGKILL)
+    worker.join(300)
+    # Ray Data restarts the killed actors and gives them the unfinished shards again: the build carries on by
+    # itself (were Ray to give up, the one-line "rerun to resume" error of run_on_ray; the test above resumes)
+    assert 1 <= len(first) < 3 and killed  # the kill came mid-build: 1 or 2 of the 3 shards finished
+    assert not worker.is_alive() and outcome == {}
+    for name, mtime in first.items():  # shards finished before the kill were not redone
+        assert next((folder / "local").rglob(name)).stat().st_mtime_ns == mtime
+    assert not list(folder.rglob("*.part"))
     got, want = _store_files(folder), _store_files(in_process)
     assert [k for k in want if got.get(k) != want[k]] == []
 

@@ -31,7 +31,7 @@ from aeroloc.matching.dense import DEFAULTS as DENSE_DEFAULTS
 from aeroloc.matching.dense import _placement_valid, _subpixel, orientation_features
 
 SWEEP_DEFAULTS = {
-    "heading_step": 15.0,  # degrees between heading hypotheses when the heading is unknown
+    "heading_step": 10.0,  # degrees between heading hypotheses when the heading is unknown
     "scale_step": 1.26,  # ratio between scale hypotheses (query gsd / map gsd)
     "scale_range": (0.25, 2.0),  # searched when the ground resolution is unknown: 4x finer .. 2x coarser
     "coarse_budget": 2_500_000,  # hypotheses x coarse-level pixels

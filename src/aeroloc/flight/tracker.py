@@ -770,7 +770,7 @@ class Tracker:
         if scale is None:
             return None
         col, row = self.map.latlon_to_pixel(loc.lat, loc.lon)
-        if h is not None:  # the sweep's heading: its 15° steps, refined
+        if h is not None:  # the sweep's heading: its 10° steps, refined
             angles = tuple(float(h.angle + d) for d in range(-12, 13, 3))
         else:
             angles = priors.heading_search() or tuple(range(-180, 180, 6))

@@ -63,8 +63,8 @@ class SweepLocator:
         return self._pyramid
 
     def search(self, image: np.ndarray, priors=None) -> SweepResult | None:
-        """Candidates for ``image``: headings within the prior's tolerance (15° steps) or the full circle; scales
-        (query gsd / map gsd) within the prior's ground-resolution range or the configured range."""
+        """Candidates for ``image``: headings ``heading_step`` apart within the prior's tolerance or over the full
+        circle; scales (query gsd / map gsd) within the prior's ground-resolution range or the configured range."""
         p = priors.with_image_width(image.shape[1]) if priors is not None else None
         angles = p.heading_search(self.conf["heading_step"]) if p is not None else None
         if angles is None:

@@ -65,7 +65,9 @@ def test_a_structural_fix_states_its_evidence_and_confidence():
 def test_a_repeated_pattern_is_not_a_fix(data_dir, naip_db):
     """Hungarian farmland (szada-hu): a field 547 m from this query's place matches it better (32 local-feature
     inliers) than its true place (21). With both candidates confirmed the query is "not localized: two places
-    match"; without the rival test the sweep would have answered the wrong field."""
+    match"; without the rival test the sweep would have answered the wrong field. (At the sweep's 15° heading steps
+    the wrong field is its first candidate; at its default 10° the true place is, and the guard still refuses,
+    since the far field confirms too: both settings are asserted.)"""
     from aeroloc.localization.cascade import Reranker
     from aeroloc.localization.sweep_stage import accept_fix
     from aeroloc.retrieval.database import Database
@@ -75,7 +77,10 @@ def test_a_repeated_pattern_is_not_a_fix(data_dir, naip_db):
     q = q["szada_any_0_04.jpg"]
     image = read_image(q.path)
     szada = open_map(data_dir / "multi-region/szada-hu/map.tif")
-    fix, why = accept_fix(SweepLocator(szada), reranker, image, q.priors)
-    assert fix is None and why.startswith("two places match")
-    unguarded, _ = accept_fix(SweepLocator(szada, {"rival_margin": 0.0}), reranker, image, q.priors)
+    for step in (15.0, 10.0):
+        fix, why = accept_fix(SweepLocator(szada, {"heading_step": step}), reranker, image, q.priors)
+        assert fix is None and why.startswith("two places match"), step
+    unguarded, _ = accept_fix(
+        SweepLocator(szada, {"heading_step": 15.0, "rival_margin": 0.0}), reranker, image, q.priors
+    )
     assert geo.geodesic_distance(unguarded.alignment.lat, unguarded.alignment.lon, q.lat, q.lon) > 400

@@ -535,13 +535,33 @@ def test_float16_rows_decoded_by_faiss_are_numpys_values():
     assert (got[~nan].view(np.uint32) == want[~nan].view(np.uint32)).all()  # bit for bit, -0.0 included
 
 
+def test_a_private_int8_product_that_does_not_give_the_matrix_product_is_not_used(monkeypatch):
+    """torch's weight-only int8 product is a private operator: the 8-bit rows are used only when it gives their
+    product with a vector (to bfloat16 rounding), else the float16 rows are."""
+    import torch
+
+    from aeroloc.retrieval.index import _int8_rows
+
+    a = np.random.default_rng(0).standard_normal((64, 256)).astype(np.float32)
+    rows, scales = _int8_rows(a)
+    x = np.random.default_rng(1).standard_normal(256).astype(np.float32)
+    with torch.inference_mode():
+        got = torch._weight_int8pack_mm(torch.from_numpy(x[None]).to(torch.bfloat16), rows, scales).float().numpy()
+    np.testing.assert_allclose(got[0], a @ x, atol=0.03 * np.abs(a @ x).max())  # 8-bit rows: ~1 % of the largest
+    real = torch._weight_int8pack_mm
+    monkeypatch.setattr(torch, "_weight_int8pack_mm", lambda x, w, s: real(x, w, s) * 2)
+    assert _int8_rows(a) is None  # scaled twice over: refused
+    monkeypatch.setattr(torch, "_weight_int8pack_mm", lambda x, w, s: real(x, w.flip(0), s))
+    assert _int8_rows(a) is None  # rows in another order: refused
+
+
 @pytest.mark.parametrize("form", ["int8", "float16"])
 def test_two_stage_single_query_projects_with_a_compact_pca_matrix(tmp_path, monkeypatch, form):
     """A query searched alone is projected by the PCA matrix held compactly (8-bit rows with torch's
     weight-only int8 product, or float16 rows where torch lacks it: fewer bytes than the float32 product a
     one-query search is bound by): its transformed vector is faiss's float32 transform to the form's rounding,
     it finds the candidates the batch path finds, and its scores stay the exact inner products with the store's
-    rows; the coarse graph's search breadth (twice the candidates, at least EF_SEARCH) can be read and set, and
+    rows; the coarse graph's search breadth (1.25x the candidates, at least EF_SEARCH) can be read and set, and
     is refused for a coarse index without a graph."""
     import faiss
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import os
 import re
 import sys
@@ -10,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aeroloc.retrieval.hugepages import HUGE, collapse, collapse_index
+from aeroloc.retrieval import hugepages
+from aeroloc.retrieval.hugepages import HUGE, MADV_COLLAPSE, collapse, collapse_index
 
 
 def _thp_mode() -> str | None:
@@ -44,11 +47,23 @@ def _anon_huge_kb(start: int, end: int) -> int:
     return kb
 
 
+def _skip_if_refused_now(got: int, want: int) -> None:
+    """Skip, naming the kernel's reason, when fewer bytes than ``want`` were collapsed because the kernel refuses
+    a fresh 4 MB buffer in this process too (no free 2 MB page, a momentary lock: not this code's doing);
+    a shortfall the kernel does not explain is left to the test's assertions."""
+    if got >= want:
+        return
+    buf = np.ones(3 * HUGE, np.uint8)
+    if hugepages._madvise()(-(-buf.ctypes.data // HUGE) * HUGE, 2 * HUGE, MADV_COLLAPSE) != 0:
+        pytest.skip(f"the kernel refuses 2 MB pages now ({errno.errorcode.get(ctypes.get_errno(), '?')})")
+
+
 @needs_collapse
 def test_collapse_puts_the_whole_huge_pages_of_a_range_on_2mb_pages():
     buf = np.ones(9 * HUGE, np.uint8)  # 18 MB: at least 8 whole 2 MB pages whatever its alignment
     addr = buf.ctypes.data
     got = collapse(addr, buf.nbytes)
+    _skip_if_refused_now(got, 8 * HUGE)
     assert got % HUGE == 0 and 8 * HUGE <= got <= 9 * HUGE
     assert _anon_huge_kb(addr, addr + buf.nbytes) * 1024 >= got  # the kernel reports them as huge pages
     assert (buf == 1).all()  # the same bytes
@@ -75,6 +90,7 @@ def test_an_index_on_huge_pages_searches_as_before():
     for v in _vectors(index):
         a, n = int(v.data()), v.size() * (8 if "64" in type(v).__name__ else 4 if "32" in type(v).__name__ else 1)
         whole += max(0, (a + n) // HUGE - -(-a // HUGE)) * HUGE
+    _skip_if_refused_now(got, whole)
     assert got == whole >= HUGE  # every one of them moved
     after = index.search(x[:50], 10)
     assert np.array_equal(before[1], after[1]) and np.array_equal(before[0], after[0])

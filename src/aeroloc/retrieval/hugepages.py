@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import errno
 import re
 import sys
+import time
 from functools import cache
 
 MADV_COLLAPSE = 25
@@ -35,7 +37,7 @@ def _madvise():
 def collapse(address: int, nbytes: int) -> int:
     """Bytes of ``[address, address + nbytes)`` now on huge pages: the whole 2 MB pages inside the range, asked
     for ``CHUNK`` at a time (one call for the 1 GB of codes of a 10^6-tile index was refused as a whole, while
-    64 MB calls all succeed: ~3 s per GB; a refused chunk is asked once more); 0 where the kernel refuses or the
+    64 MB calls all succeed: ~3 s per GB; a momentary refusal is asked again); 0 where the kernel refuses or the
     range holds no whole huge page."""
     fn = _madvise()
     start, end = -(-address // HUGE) * HUGE, (address + nbytes) // HUGE * HUGE
@@ -44,10 +46,21 @@ def collapse(address: int, nbytes: int) -> int:
     done = 0
     for a in range(start, end, CHUNK):
         b = min(a + CHUNK, end)
-        # asked twice at most: a refused 2 MB allocation can be momentary (the test suite met one in a full run:
-        # /proc/vmstat thp_collapse_alloc_failed 1; the same test passed alone every time)
-        done += (b - a) if fn(a, b - a, MADV_COLLAPSE) == 0 or fn(a, b - a, MADV_COLLAPSE) == 0 else 0
+        done += (b - a) if _collapse_chunk(fn, a, b - a) else 0
     return done
+
+
+def _collapse_chunk(fn, address: int, nbytes: int, tries: int = 3) -> bool:
+    """One ``MADV_COLLAPSE`` call, repeated a few milliseconds later while the kernel says the refusal is
+    momentary (EAGAIN: a page briefly locked or off the LRU; ENOMEM: no 2 MB page free; EBUSY: the cgroup's
+    charge). Two full test-suite runs met refusals (reason not recorded) that the same tests alone never met."""
+    for k in range(tries):
+        if fn(address, nbytes, MADV_COLLAPSE) == 0:
+            return True
+        if ctypes.get_errno() not in (errno.EAGAIN, errno.ENOMEM, errno.EBUSY) or k == tries - 1:
+            return False
+        time.sleep(0.005 * (k + 1))
+    return False
 
 
 def _vectors(index) -> list:

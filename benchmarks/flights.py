@@ -11,6 +11,9 @@ last N, load average; --traced adds Python's traced allocations, tracemalloc, wh
 goes and written to OUT/<name>/memory.csv. A simulated flight's ``return_to_cover`` is the simulator's
 option of that name (on by default: back to the covered ground instead of a random walk at its edge).
 
+The figures depend on torch's thread count (a path's share moved 0.842 → 0.737 from 2 threads to 1), so the
+run prints it first, and a finished track of another thread count is tracked again.
+
 ``--seeds``: each simulated flight is flown again at these seeds too (its own path and frames; OUT/<name>-seed<S>)
 and a summary per flight follows the table: one flight's share swings by +-0.1 with its path (a one-pixel change
 of the composite moved NAIP's from 0.75 to 0.95), and a failure that one path avoids shows on another (seed 4:
@@ -205,6 +208,10 @@ def main(argv=None) -> int:
     conf = yaml.safe_load(Path(args.experiments).read_text())
     out = Path(conf.get("out", "out/flights"))
     seeds = [int(v) for v in args.seeds.split(",") if v.strip()]
+    import torch
+
+    # a flight's fixes can change with torch's thread count (README, flight mode): the figures name theirs
+    print(f"torch threads: {torch.get_num_threads()} (OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')})")
     rows, family = [], {}
     for f in conf["flights"]:
         if args.only and args.only not in f["name"]:

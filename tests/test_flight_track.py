@@ -423,6 +423,12 @@ def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path, monkeypat
 
     monkeypatch.setattr(run, "Tracker", no_tracker)
     assert [p.row() for p in track_flight(localizer, fl, out)] == [p.row() for p in full]  # this code's: read back
+    # on another torch thread count (its float sums can change a fix) the flight is tracked again, not read back
+    monkeypatch.setattr(run, "_torch_threads", lambda: 7)
+    with pytest.raises(Boom):
+        track_flight(localizer, fl, out)
+    monkeypatch.undo()
+    monkeypatch.setattr(run, "Tracker", no_tracker)
     # the same flight and settings with other code (another hash of the source) are tracked again, not read back
     monkeypatch.setattr(run, "code_identity", lambda packages=None: "other-code")
     with pytest.raises(Boom):

@@ -21,11 +21,27 @@ def signature(db, flight: Flight, options, config: TrackConfig) -> str:
     ident = (
         file_identity(src) if src else [(f.name, f.time) for f in flight.frames[:: max(1, len(flight.frames) // 50)]]
     )
-    # the code too: a finished track of other code is tracked again, not read back as this code's
+    # the code too: a finished track of other code is tracked again, not read back as this code's; and torch's
+    # thread count: the matchers' float sums differ in their last bits with it, and so can a flight's fixes
+    # (NAIP, no metadata, one path: 0.842 of the frames within t on 2 threads, 0.737 on 1)
     code = code_identity((*LOCALIZATION_PACKAGES, "flight"))
     return config_key(
-        "track-v1", db.tiles_hash(), str(flight.source), ident, len(flight.frames), repr(options), asdict(config), code
+        "track-v1",
+        db.tiles_hash(),
+        str(flight.source),
+        ident,
+        len(flight.frames),
+        repr(options),
+        asdict(config),
+        code,
+        f"torch threads {_torch_threads()}",
     )
+
+
+def _torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
 
 
 def track_flight(

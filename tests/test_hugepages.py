@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from aeroloc.retrieval import hugepages
-from aeroloc.retrieval.hugepages import HUGE, MADV_COLLAPSE, collapse, collapse_index
+from aeroloc.retrieval.hugepages import HUGE, collapse, collapse_index
 
 
 def _thp_mode() -> str | None:
@@ -54,7 +54,7 @@ def _skip_if_refused_now(got: int, want: int) -> None:
     if got >= want:
         return
     buf = np.ones(3 * HUGE, np.uint8)
-    if hugepages._madvise()(-(-buf.ctypes.data // HUGE) * HUGE, 2 * HUGE, MADV_COLLAPSE) != 0:
+    if collapse(buf.ctypes.data, buf.nbytes) == 0:
         pytest.skip(f"the kernel refuses 2 MB pages now ({errno.errorcode.get(ctypes.get_errno(), '?')})")
 
 
@@ -98,8 +98,6 @@ def test_an_index_on_huge_pages_searches_as_before():
 
 def test_collapse_is_a_no_op_where_the_kernel_refuses(monkeypatch):
     """Best effort: a refused madvise (old kernel, no free huge pages) leaves the memory as it was, 0 bytes."""
-    from aeroloc.retrieval import hugepages
-
     monkeypatch.setattr(hugepages, "_madvise", lambda: lambda *a: -1)
     buf = np.ones(3 * HUGE, np.uint8)
     assert collapse(buf.ctypes.data, buf.nbytes) == 0

@@ -57,9 +57,10 @@ def _collapse_chunk(fn, address: int, nbytes: int, tries: int = 3) -> bool:
     for k in range(tries):
         if fn(address, nbytes, MADV_COLLAPSE) == 0:
             return True
-        if ctypes.get_errno() not in (errno.EAGAIN, errno.ENOMEM, errno.EBUSY) or k == tries - 1:
-            return False
-        time.sleep(0.005 * (k + 1))
+        if ctypes.get_errno() not in (errno.EAGAIN, errno.ENOMEM, errno.EBUSY):
+            break
+        if k + 1 < tries:
+            time.sleep(0.005 * (k + 1))
     return False
 
 

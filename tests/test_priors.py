@@ -78,6 +78,19 @@ def test_generated_set_truth_is_kept_but_not_a_prior_by_default(levir_any):
     assert describe_priors(qs) == "priors: no ground resolution; no heading"
 
 
+def test_the_localize_line_names_the_options_that_stand_in_for_missing_priors(levir_any):
+    """--query-gsd and --north-up are run-wide defaults, not per-query priors: the line says both, so a run given
+    them does not read "no ground resolution; no heading" alone."""
+    from aeroloc.commands.localize import priors_line
+    from aeroloc.localization.options import LocalizeOptions
+
+    qs = load_queries(levir_any)[:N]
+    assert priors_line(qs, LocalizeOptions()) == "priors: no ground resolution; no heading"
+    line = priors_line(qs, LocalizeOptions(query_gsd=0.75, north_up=True))
+    assert line.startswith("priors: no ground resolution; no heading; ")
+    assert "--query-gsd 0.75 m for queries without their own" in line and "--north-up" in line
+
+
 def test_csv_mode_reads_the_columns_as_priors(levir_any):
     rows = _rows(levir_any)[:N]
     qs = load_queries(levir_any, priors="csv")[:N]

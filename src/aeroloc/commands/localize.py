@@ -101,11 +101,25 @@ def options_from_args(args):
     )
 
 
+def priors_line(queries, options) -> str:
+    """What the run knows of the queries' ground resolution and heading: their own priors, and the options that
+    stand in for them (``--query-gsd`` is the dense stage's default, not a per-query prior: without it here the
+    line said "no ground resolution" for a run given one)."""
+    from aeroloc.core.priors import describe_priors
+
+    line = describe_priors(queries)
+    if options.query_gsd is not None:
+        line += f"; --query-gsd {options.query_gsd:g} m for queries without their own"
+    if options.north_up:
+        line += "; --north-up for queries without their own heading"
+    return line
+
+
 def run(args) -> int:
     from aeroloc.commands.priors_args import priors_from_args
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
-    from aeroloc.core.priors import apply_overrides, describe_priors
+    from aeroloc.core.priors import apply_overrides
     from aeroloc.core.queries import load_queries
     from aeroloc.localization.run import localize_queries
     from aeroloc.retrieval.database import Database
@@ -119,7 +133,7 @@ def run(args) -> int:
     overrides = priors_from_args(args)
     db = Database(args.db)
     queries = apply_overrides(load_queries(args.queries), overrides)
-    print(describe_priors(queries))
+    print(priors_line(queries, options))
     results = localize_queries(db, queries, args.out, options, pick_device(args.device), save_matches=args.save_matches)
     n_loc = sum(r.localized for r in results)
     print(f"{n_loc}/{len(results)} queries localized -> {args.out}")

@@ -68,16 +68,49 @@ def simulated(f: dict, folder: Path):
     plan = FlightPlan(
         frames=f["frames"], gap_frames=f.get("gap", 30), seed=f.get("seed", 0), width=w, height=h, **flying
     )
+    made = simulation_identity(f, plan)
+    stamp = folder / "simulated.json"
+    if (folder / "truth.csv").is_file() and (not stamp.is_file() or stamp.read_text() != made):
+        clear_flight(folder)  # frames of another simulator, plan or OpenCV: fly it again, not the old frames
     if not (folder / "truth.csv").is_file():
         m = open_map(f["map"])
         crops = [q for c in f["crops"] for q in load_queries(c, priors="none")]
         write_flight(folder, m, compose(m, crops, factor=f.get("factor", 2.0)), plan)
+        stamp.write_text(made)
     with open(folder / "truth.csv", newline="") as fh:
         truth = {r["name"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(fh)}
     tel = folder / "telemetry.csv" if f.get("telemetry") else None
     g0 = round(plan.gap_start * plan.frames)
     gap_end = (g0 + plan.gap_frames - 0.5) / plan.rate_hz if plan.gap_frames else None
     return load_flight(folder / "frames.csv", tel), truth, gap_end
+
+
+def simulation_identity(f: dict, plan) -> str:
+    """What a simulated flight's frames depend on: the simulator's source, the plan, the flight's map and crops
+    and OpenCV's version (it warps and encodes the frames). Frames were written once and reused after the
+    simulator changed, so a fresh clone flew other frames than the figures in the README came from."""
+    import hashlib
+    import json
+
+    import cv2
+
+    import aeroloc.flight.composite as composite
+    import aeroloc.flight.simulate as simulate
+
+    h = hashlib.sha1()
+    for mod in (composite, simulate):
+        h.update(Path(mod.__file__).read_bytes())
+    what = {k: f.get(k) for k in ("map", "crops", "factor")}
+    return json.dumps({"code": h.hexdigest()[:12], "plan": repr(plan), **what, "opencv": cv2.__version__}, indent=1)
+
+
+def clear_flight(folder: Path) -> None:
+    """A simulated flight's frames, tables and track removed (everything write_flight and the tracker wrote)."""
+    import shutil
+
+    shutil.rmtree(folder / "frames", ignore_errors=True)
+    for name in ("frames.csv", "truth.csv", "telemetry.csv", "track.csv", "track.csv.done", "simulated.json"):
+        (folder / name).unlink(missing_ok=True)
 
 
 def photos(f: dict, folder: Path):

@@ -689,38 +689,52 @@ def test_a_windowed_fix_is_as_sure_as_a_map_pixel(tracked):
     assert tracker._fix_sigma(0.4) == pytest.approx(2.0)
 
 
-def test_three_frames_agreeing_distinctly_together_relocalize_four_need_half_of_it(tracked):
-    """A lost track's best peaks, not distinct alone, fix the track when the best peaks of several searched frames
-    in a row agree: three when their ratios multiplied reach the distinctness asked of one frame (levir-tx flight
-    without metadata after its outage: 1.38, 1.10, 1.32 on the truth, found one frame sooner), never three barely
-    distinct ones (the NAIP flight's three frames agreeing on a place 590 m off had ratios of 1.01-1.05); four
-    when theirs reach half of it in log. Ties agree with each other on overlapping frames: the szada-hu seed-2
-    flight's four (x1.10) took a place 147 m off, the NAIP telemetry flight's (x1.19) the truth."""
+def test_frames_agreeing_relocalize_only_as_distinct_together_as_one_frame_counting_new_ground_once(tracked):
+    """A lost track's best peaks, not distinct alone, fix the track when the best peaks of at least three searched
+    frames in a row agree and are distinct together as one frame must be alone, each later frame's ratio counting
+    only for the share of a footprint flown since the frame before it. Frames a footprint apart with ratios 1.38,
+    1.10, 1.32 decide; the same ratios on frames 3 % of a footprint apart (consecutive frames at 2 frames/s) do
+    not: they are one view counted thrice. Counted whole, four such NAIP frames after an outage (1.13, 1.13, 1.02,
+    1.01) agreed on a place 540 m off (70 wrong frames on the telemetry flight), szada-hu's (1.07, 1.005, 1.014,
+    1.01) on one 147 m off."""
+    import numpy as np
+
     from aeroloc.flight.calibration import Pose
-    from aeroloc.flight.tracker import Tracker
+    from aeroloc.flight.odometry import Step
+    from aeroloc.flight.tracker import Tracker, new_ground_evidence
 
     _, _, localizer, _ = tracked
     tracker = Tracker(localizer)
     cfg = tracker.cfg
+    size = (480, 360)
     at = Pose(400.0, 300.0, 30.0, 0.4)
     assert cfg.vote_frames_min < cfg.vote_frames
-    assert 1.38 * 1.10 * 1.32 >= cfg.near_ratio > 1.05**3
 
-    def votes(ratios, moved=0.0):
+    def votes(ratios, share, score=0.3, apart_px=0.0):
+        """``_vote`` on consecutive frames each ``share`` of a footprint after the last, their best peaks on the
+        one place (carried on by the same steps) or ``apart_px`` map px apart."""
         tracker.candidates.clear()
-        out = [tracker._vote(Pose(at.x + moved * k, at.y, at.turn_deg, at.scale), 0.3, r) for k, r in enumerate(ratios)]
+        step = Step(np.array([[1.0, 0.0, share * max(size)], [0.0, 1.0, 0.0]]), 100, 100)
+        out, pose = [], at
+        for k, r in enumerate(ratios):
+            if k:
+                tracker._carry_candidates(step, size)
+                pose = tracker.candidates[-1][0] if tracker.candidates else pose.moved(step.A, size)
+            out.append(tracker._vote(Pose(pose.x + apart_px * k, pose.y, pose.turn_deg, pose.scale), score, r))
         return out
 
-    assert votes([1.38, 1.10, 1.32]) == [0, 0, cfg.vote_frames_min]
-    assert votes([1.05, 1.03, 1.01]) == [0, 0, 0]
-    assert votes([1.071, 1.005, 1.014, 1.01]) == [0, 0, 0, 0]
-    assert votes([1.0, 1.05, 1.054, 1.076]) == [0, 0, 0, cfg.vote_frames]
+    assert votes([1.38, 1.10, 1.32], share=1.0) == [0, 0, 3]
+    assert votes([1.38, 1.10, 1.32], share=0.03) == [0, 0, 0]
+    assert votes([1.126, 1.134, 1.023, 1.008], share=0.03) == [0, 0, 0, 0]
+    assert votes([1.071, 1.005, 1.014, 1.01], share=1.0) == [0, 0, 0, 0]  # new ground, but ties
+    assert votes([1.05, 1.03, 1.01, 1.2, 1.2, 1.15], share=0.6) == [0, 0, 0, 0, 0, 6]  # slowly, over new ground
     far = max(cfg.vote_m, 3 * tracker.gsd) / tracker.gsd + 1.0  # peaks a vote's tolerance apart do not agree
-    assert votes([1.38, 1.10, 1.32], moved=far) == [0, 0, 0]
-    tracker.candidates.clear()
-    assert tracker._vote(at, cfg.vote_score - 0.01, 2.0) == 0  # a weak peak breaks the row
-    assert [tracker._vote(at, 0.3, r) for r in (1.38, 1.10)] == [0, 0]  # two after it: not yet three
-    assert tracker._vote(at, 0.3, 1.32) == cfg.vote_frames_min
+    assert votes([1.38, 1.10, 1.32], share=1.0, apart_px=far) == [0, 0, 0]
+    assert votes([2.0, 2.0, 2.0], share=1.0, score=cfg.vote_score - 0.01) == [0, 0, 0]  # weak peaks: no vote
+    # the measure itself: the first frame whole, the others by the footprint flown since the one before
+    assert new_ground_evidence([(1.4, 0.0)]) == pytest.approx(np.log(1.4))
+    assert new_ground_evidence([(1.2, 0.5), (1.2, 0.25), (1.2, 0.0)]) == pytest.approx(1.5 * np.log(1.2))
+    assert new_ground_evidence([(1.2, 3.0), (1.2, 0.0)]) == pytest.approx(2 * np.log(1.2))  # at most one footprint
 
 
 def test_local_features_confirm_a_searched_frames_peak_only_where_the_frame_is(flight, tracked):

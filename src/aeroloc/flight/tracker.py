@@ -12,6 +12,7 @@ on from a coasted position: no map evidence since the break) or ``lost`` (no pos
 from __future__ import annotations
 
 import ctypes
+import itertools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -81,12 +82,11 @@ class TrackConfig:
     # share of it and is the whole reach's best too: its rivals are all farther from the prediction (less likely)
     near_ratio: float = 1.4  # distinctness asked of a fix found that way (the dense stage's global rule: at 1.2 an
     # ambiguous NAIP field pattern gave a fix 500 m off, which the next, 97 %-overlapping frame 'confirmed')
-    vote_frames: int = 4  # ... or the best peak, not distinct, when the best peaks of this many frames in a row
-    # (each scoring >= vote_score), carried on by the odometry, agree and their ratios multiplied reach
-    # sqrt(near_ratio)
-    vote_frames_min: int = 3  # ... or of this many, when their ratios multiplied reach near_ratio (distinct
-    # together: levir-tx flight without metadata after its outage, ratios 1.38, 1.10, 1.32 on the truth; the NAIP
-    # flight's wrong agreement above had 1.01-1.05 each)
+    vote_frames: int = 12  # ... or the best peak, not distinct, when the best peaks of the last searched frames
+    # in a row (at most this many, each scoring >= vote_score), carried on by the odometry, agree, at least
+    # vote_frames_min of them, and are distinct together as one frame must be alone (near_ratio), each frame's
+    # ratio counting only for the share of the footprint it shows anew (Tracker._vote)
+    vote_frames_min: int = 3
     vote_score: float = 0.3  # ... each scoring at least this
     near_confirm: bool = True  # ... or the best peak (scoring >= vote_score) of one frame when local features
     # confirm it (Tracker._confirmed)
@@ -214,8 +214,8 @@ class Tracker:
         # odometry step, a coasted step, a fix); frames not tracked since (a lost track) add their time too
         self.unseen_turn_s = 0.0  # seconds coasted (no odometry step) since a fix last measured the heading: the
         # odometry measures turns relative to the pose, so a turn made while blind stays in the heading until a fix
-        self.candidates: list[tuple[Pose, float, int, float]] = []  # recent searched frames' best peaks (carried on by
-        # the odometry), their scores and ages in frames
+        self.candidates: list[tuple[Pose, float, int, float, float]] = []  # recent searched frames' best peaks
+        # (carried on by the odometry), their scores, ages in frames, ratios and the footprints flown since
         self._compass_last: float | None = None  # the previous frame's compass heading (telemetry)
         self.compass_step: float | None = None  # the turn it measured to this frame
         self.dead: tuple[Estimate, float, float] | None = None  # the filter's estimate when the track was lost, when,
@@ -691,18 +691,23 @@ class Tracker:
         return n if fix is not None else 0
 
     def _vote(self, pose: Pose, score: float, ratio: float = 1.0) -> int:
-        """Record a searched frame's best but not distinct peak; ``vote_frames`` when the best peaks of that many
-        searched frames in a row (this one the last), carried to this frame by the odometry, each scoring at least
-        ``vote_score``, agree (else 0). A repeated field pattern puts a rival of nearly the same score elsewhere,
-        and it can move with the frames: NAIP, after a 15 s outage in a turn, the best peaks of frames 1, 2 and 4
-        after it agreed on a place 590 m off (ratios 1.01-1.05), those of 3, 5, 6, 7 and 8 on the truth (5-11 m
-        off); 3 of 4 agreeing took the wrong place, all 4 in a row the true one. ``vote_frames_min`` agreeing
-        are enough when their ``ratio``s multiplied reach ``near_ratio``: distinct together, as one frame must be
-        alone (levir-tx without metadata after its outage: 1.38, 1.10, 1.32 on the truth)."""
-        self.candidates.append((pose, score, 0, ratio))
+        """Record a searched frame's best but not distinct peak; the number of frames whose best peaks decide it
+        (else 0): the last searched frames in a row (this one the last), their peaks carried to this frame by the
+        odometry, each scoring at least ``vote_score``, agreeing within ``vote_m`` and ``vote_turn_deg``, at least
+        ``vote_frames_min`` of them, and distinct together as one frame must be alone: their ratios multiplied
+        reach ``near_ratio``, each frame's (but the first's) raised to the share of a footprint flown since the
+        frame before it (:func:`new_ground_evidence`).
+
+        Why the share: consecutive frames overlap 90-97 %, so their peaks, ties included, agree with each other
+        whatever the truth, and their ratios are one image's evidence counted again. Counted whole, four NAIP
+        frames after an outage (ratios 1.13, 1.13, 1.02, 1.01, x1.31, 3 % of a footprint apart) agreed on a
+        place 540 m off (70 wrong frames on the telemetry flight), and szada-hu's (x1.10) on one 147 m off. A
+        single best peak not distinct is placed by local features instead (:meth:`_confirmed`), an independent
+        test of the one place."""
+        self.candidates.append((pose, score, 0, ratio, 0.0))
         tol = max(self.cfg.vote_m, 3 * self.gsd) / self.gsd
-        agreeing = 0  # the frames in a row, this one the last, whose best peaks agree with this one's
-        for c, sc, _, _ in reversed(self.candidates):
+        run = []  # the frames in a row, this one first, whose best peaks agree with this one's
+        for c, sc, _, r, flown in reversed(self.candidates):
             near = math.hypot(c.x - pose.x, c.y - pose.y) <= tol
             if not (
                 sc >= self.cfg.vote_score
@@ -710,31 +715,27 @@ class Tracker:
                 and abs(turn_difference(c.turn_deg - pose.turn_deg)) <= self.cfg.vote_turn_deg
             ):
                 break
-            agreeing += 1
-        together = math.prod(r for *_, r in self.candidates[-self.cfg.vote_frames_min :])
-        all_of_them = math.prod(r for *_, r in self.candidates[-self.cfg.vote_frames :])
-        # ``vote_frames`` agreeing: together at least half as distinct (in log) as one frame must be alone. Frames
-        # 97 % overlapping are nearly one image, so ties agree with each other: szada-hu seed 2 after its outage,
-        # ratios 1.07, 1.005, 1.01, 1.01 (x1.10) agreed on a place 147 m off at a heading 145° off (51 wrong
-        # frames); the true places the rule was made for agreed at x1.19-1.56
-        n = self.cfg.vote_frames if agreeing >= self.cfg.vote_frames and all_of_them >= self.cfg.near_ratio**0.5 else 0
-        if not n and agreeing >= self.cfg.vote_frames_min and together >= self.cfg.near_ratio:
-            n = self.cfg.vote_frames_min
-        if n:
-            self.candidates.clear()
+            run.append((r, flown))
+        n = len(run)
+        if n < self.cfg.vote_frames_min or new_ground_evidence(run[::-1]) < math.log(self.cfg.near_ratio):
+            return 0
+        self.candidates.clear()
         return n
 
     def _carry_candidates(self, step, size) -> None:
-        """The recent frames' best peaks moved on with this frame's odometry step (dropped without one, or once
-        older than ``vote_frames`` frames)."""
+        """The recent frames' best peaks moved on with this frame's odometry step, with the share of a footprint
+        the frame moved (dropped without a step, or once older than ``vote_frames`` frames)."""
         if not self.candidates:
             return
         if step is None:
             self.candidates.clear()
             return
+        w, h = size
+        cx, cy = w / 2.0, h / 2.0
+        shift = math.hypot(*(step.A @ np.array([cx, cy, 1.0]) - np.array([cx, cy]))) / max(w, h)
         self.candidates = [
-            (c.moved(step.A, size), sc, age + 1, r)
-            for c, sc, age, r in self.candidates
+            (c.moved(step.A, size), sc, age + 1, r, flown + shift)
+            for c, sc, age, r, flown in self.candidates
             if age + 1 < self.cfg.vote_frames
         ]
 
@@ -810,3 +811,15 @@ class Tracker:
             p.yaw_deg(),
             p.gsd_m(self.gsd),
         )
+
+
+def new_ground_evidence(run: list[tuple[float, float]]) -> float:
+    """The log-distinctness of frames that agree, oldest first, each ``(ratio, footprints flown since it)``: the
+    first frame's log-ratio whole, each later one's times the share of a footprint flown since the frame before
+    it (at most 1). Overlapping views are one view's evidence; views of new ground add theirs."""
+    if not run:
+        return 0.0
+    total = math.log(max(run[0][0], 1.0))
+    for (_, before), (r, flown) in itertools.pairwise(run):
+        total += min(1.0, max(0.0, before - flown)) * math.log(max(r, 1.0))
+    return total

@@ -852,3 +852,22 @@ def test_the_georef_table_reads_only_metre_thresholds_beside_the_scaled_recall()
     row = {"queries": "a", "method": "m", "reranker": "r", "georef_recall@5m": 0.5, "georef_recall@t": 0.7}
     md = georef_table([row], "a").markdown()
     assert "≤5 m" in md and "≤t" not in md
+
+
+def test_the_shipped_experiment_files_load_and_the_rough_seeds_redraw_only_the_noise():
+    """Every sweep file in experiments/ loads (a broken shipped file fails here, not in a user's hour-long run),
+    and atlas-rough-seeds.yaml holds the atlas's rough rows again at noise seeds 1 and 2: the same sets, maps and
+    settings, keys of their own (results are not mixed with seed 0's)."""
+    root = Path(__file__).resolve().parents[1] / "experiments"
+    sweeps = [p for p in sorted(root.glob("*.yaml")) if "methods" in (yaml.safe_load(p.read_text()) or {})]
+    assert {"atlas.yaml", "atlas-rough-seeds.yaml"} <= {p.name for p in sweeps}
+    configs = {p.name: expand(load_experiment(p)) for p in sweeps}
+    rough = [c for c in configs["atlas.yaml"] if c.priors == "rough"]
+    seeds = configs["atlas-rough-seeds.yaml"]
+    assert len(seeds) == 2 * len(rough) > 0
+    assert {c.seed for c in rough} == {0} and sorted({c.seed for c in seeds}) == [1, 2]
+    assert {c.queries_path for c in seeds} == {c.queries_path for c in rough}
+    assert {(c.map_path, c.tile_m, c.top_n, c.reranker) for c in seeds} == {
+        (c.map_path, c.tile_m, c.top_n, c.reranker) for c in rough
+    }
+    assert not {c.key() for c in seeds} & {c.key() for c in configs["atlas.yaml"]}

@@ -105,12 +105,12 @@ def simulation_identity(f: dict, plan) -> str:
 
 
 def clear_flight(folder: Path) -> None:
-    """A simulated flight's frames, tables and track removed (everything write_flight and the tracker wrote)."""
+    """A simulated flight's folder emptied: its frames, tables, track and logs all came from the old frames (a
+    list of the files would drift from what write_flight and the tracker write)."""
     import shutil
 
-    shutil.rmtree(folder / "frames", ignore_errors=True)
-    for name in ("frames.csv", "truth.csv", "telemetry.csv", "track.csv", "track.csv.done", "simulated.json"):
-        (folder / name).unlink(missing_ok=True)
+    shutil.rmtree(folder)
+    folder.mkdir(parents=True)
 
 
 def photos(f: dict, folder: Path):

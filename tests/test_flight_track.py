@@ -8,6 +8,7 @@ import csv
 import itertools
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -421,18 +422,44 @@ def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path, monkeypat
     def no_tracker(*a, **k):
         raise Boom("tracked again")
 
+    # each change below is tried on the finished track (a mismatch discards it, so it is put back each time)
+    kept = {f: f.read_bytes() for f in (out, out.with_name("track.csv.done"))}
+
+    def finished_track():
+        for f, data in kept.items():
+            f.write_bytes(data)
+        out.with_name("track.csv.part").unlink(missing_ok=True)
+
+    def tracked_again() -> bool:
+        finished_track()
+        try:
+            rows = [p.row() for p in track_flight(localizer, fl, out)]
+        except Boom:
+            return True
+        assert rows == [p.row() for p in full]  # read back whole
+        return False
+
     monkeypatch.setattr(run, "Tracker", no_tracker)
-    assert [p.row() for p in track_flight(localizer, fl, out)] == [p.row() for p in full]  # this code's: read back
+    assert not tracked_again()  # this code's, these frames: read back
     # on another torch thread count (its float sums can change a fix) the flight is tracked again, not read back
     monkeypatch.setattr(run, "_torch_threads", lambda: 7)
-    with pytest.raises(Boom):
-        track_flight(localizer, fl, out)
+    assert tracked_again()
     monkeypatch.undo()
     monkeypatch.setattr(run, "Tracker", no_tracker)
     # the same flight and settings with other code (another hash of the source) are tracked again, not read back
     monkeypatch.setattr(run, "code_identity", lambda packages=None: "other-code")
-    with pytest.raises(Boom):
-        track_flight(localizer, fl, out)
+    assert tracked_again()
+    monkeypatch.undo()
+    monkeypatch.setattr(run, "Tracker", no_tracker)
+    # frames rendered again under the same names (the CSV unchanged) are other images: tracked again
+    first = fl.frames[0].path
+    st = first.stat()
+    os.utime(first, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    try:
+        assert tracked_again()
+    finally:
+        os.utime(first, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert not tracked_again()  # the same images again: read back
 
 
 def test_geojson_and_kml(tracked, tmp_path, flight):

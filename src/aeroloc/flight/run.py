@@ -18,9 +18,7 @@ from aeroloc.flight.tracker import COLUMNS, TrackConfig, Tracker, TrackPoint
 
 def signature(db, flight: Flight, options, config: TrackConfig) -> str:
     src = flight.source if flight.source.is_file() else None
-    ident = (
-        file_identity(src) if src else [(f.name, f.time) for f in flight.frames[:: max(1, len(flight.frames) // 50)]]
-    )
+    ident = [file_identity(src) if src else "", _frames_identity(flight)]
     # the code too: a finished track of other code is tracked again, not read back as this code's; and torch's
     # thread count: the matchers' float sums differ in their last bits with it, and so can a flight's fixes
     # (NAIP, no metadata, one path: 0.842 of the frames within t on 2 threads, 0.737 on 1)
@@ -36,6 +34,19 @@ def signature(db, flight: Flight, options, config: TrackConfig) -> str:
         code,
         f"torch threads {_torch_threads()}",
     )
+
+
+def _frames_identity(flight: Flight) -> list:
+    """The frame images themselves, sampled (50 at most): a FRAMES CSV names its images, so images rendered
+    again under the same names (a simulator re-run) must not resume the old track. Size and modification time
+    of each sampled file (cheap: no image read); the video file's digest."""
+    if flight.video is not None:
+        return [file_identity(flight.video)]
+    out = []
+    for f in flight.frames[:: max(1, len(flight.frames) // 50)]:
+        st = f.path.stat() if f.path is not None and f.path.is_file() else None
+        out.append((f.name, f.time, None if st is None else (st.st_size, st.st_mtime_ns)))
+    return out
 
 
 def _torch_threads() -> int:

@@ -129,6 +129,15 @@ def test_truthless_rows_are_kept_without_truth(tmp_path):
     assert not q.has_truth
 
 
+def test_a_csv_of_photos_to_localize_needs_no_truth_columns(tmp_path):
+    """A drone's photos have no truth: name and prior columns alone are a query set (the priors read, no truth)."""
+    _write_image(tmp_path / "queries" / "x.png")
+    (tmp_path / "set.csv").write_text("name,alt_agl_m,hfov_deg,heading_deg,heading_tol_deg\nx.png,120,60,30,15\n")
+    (q,) = load_queries(tmp_path / "set.csv")
+    assert not q.has_truth and math.isnan(q.lat)
+    assert q.priors.heading_deg == 30 and q.priors.heading_tol_deg == 15 and q.priors.alt_agl_m == 120
+
+
 @pytest.mark.parametrize(
     "text,match",
     [

@@ -1,7 +1,7 @@
 """Query sets: images with (optional) ground truth and (optional) priors.
 
 Accepted shapes:
-- a CSV with ``name,lat,lon`` (+ optional ``heading_deg``, ``alt_m``, ``footprint_m`` …, and the prior columns
+- a CSV with ``name`` and, when the truth is known, ``lat,lon`` (+ optional ``heading_deg``, ``alt_m``, ``footprint_m`` …, and the prior columns
   of :mod:`aeroloc.core.priors`: ``gsd_m, gsd_tol, alt_agl_m, hfov_deg, focal_mm, sensor_w_mm, heading_deg,
   heading_tol_deg``); images are looked up beside it, in a sibling ``queries/`` or ``photos/`` folder;
 - the seed's ``queries.txt``: header line, then ``filename lon lat`` (longitude first!);
@@ -114,9 +114,12 @@ def _from_csv(path: Path, mode: str = "auto", seed: int = 0) -> list[Query]:
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         cols = set(reader.fieldnames or [])
-        missing = {"name", "lat", "lon"} - cols
+        # truth is optional (photos to localize have none: name and prior columns only), but whole
+        missing = ({"name"} | ({"lat", "lon"} if cols & {"lat", "lon"} else set())) - cols
         if missing:
-            raise AerolocError(f"{path}: missing columns {sorted(missing)} (need name,lat,lon)")
+            raise AerolocError(
+                f"{path}: missing columns {sorted(missing)} (need name; lat,lon together when the truth is known)"
+            )
         rows = list(reader)
     if not rows:
         raise AerolocError(f"{path}: no queries")
@@ -128,7 +131,7 @@ def _from_csv(path: Path, mode: str = "auto", seed: int = 0) -> list[Query]:
         where = f"{path}:{i}"
         if None in r or None in r.values():  # csv.DictReader's marks for too many / too few fields
             raise AerolocError(f"{where}: the row does not have the header's {len(cols)} columns")
-        lat, lon = _float(r["lat"], "lat", where), _float(r["lon"], "lon", where)
+        lat, lon = _float(r.get("lat"), "lat", where), _float(r.get("lon"), "lon", where)
         _check_latlon(lat, lon, where)
         values = {c: parse_value(c, r[c], where) for c in PRIOR_COLUMNS if c in cols}
         image = folder / r["name"]

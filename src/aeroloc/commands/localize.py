@@ -59,6 +59,12 @@ def add_arguments(p):
         "re-ranking finds nothing",
     )
     p.add_argument(
+        "--no-neighbours",
+        action="store_true",
+        help="don't re-rank the tiles beside the first 3 retrieved ones when no retrieved tile placed the query "
+        "(aeroloc.localization.neighbours; before the sweep)",
+    )
+    p.add_argument(
         "--no-structure-refine",
         action="store_true",
         help="don't refine local-feature fixes by the dense structure at their own heading and scale "
@@ -96,6 +102,7 @@ def options_from_args(args):
         north_up=args.north_up,
         query_gsd=args.query_gsd,
         sweep=not args.no_sweep,
+        neighbours=not args.no_neighbours,
         structure_refine=not args.no_structure_refine,
         min_confidence=args.min_confidence,
     )

@@ -146,8 +146,11 @@ class Localizer:
         if known and self.sweep is not None and self.reranker is not None:
             # a heading or scale prior: the cascade at the turns the heading allows, then the sweep narrowed to it
             self._cascade(image, r.tile_ids, top_k, priors, out, query=query)
+            tried = list(r.tile_ids)
             if not out.localized and AMBIGUOUS not in out.status:
-                self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
+                tried += self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
+            if not out.localized and AMBIGUOUS not in out.status:
+                self._neighbour_fix(image, r.tile_ids, tried, top_k, priors, out, query)
             if not out.localized and AMBIGUOUS not in out.status:
                 self._sweep_fix(image, priors, out, r.tile_ids, top_k)
             return out
@@ -176,15 +179,20 @@ class Localizer:
             out.status = "retrieval only"
             return out
         self._cascade(image, r.tile_ids, top_k, priors, out, dense_ms, query, r.turn_scores)
+        tried = list(r.tile_ids)
         if not out.localized and AMBIGUOUS not in out.status:
-            self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
+            tried += self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
+        if not out.localized and AMBIGUOUS not in out.status:
+            self._neighbour_fix(image, r.tile_ids, tried, top_k, priors, out, query)
         ambiguous = AMBIGUOUS in out.status  # two places match: no later stage may pick one of them
         if not out.localized and self.sweep is not None and not known and not self.options.north_up and not ambiguous:
             # heading unknown and the quarter turns found nothing: every heading and scale
             self._sweep_fix(image, None, out, r.tile_ids, top_k)
         return out
 
-    def _turned_retrieval(self, image, tried: list[str], top_n: int, top_k: int, priors, out: Localization, query=None):
+    def _turned_retrieval(
+        self, image, tried: list[str], top_n: int, top_k: int, priors, out: Localization, query=None
+    ) -> list[str]:
         """When the cascade found nothing on the upright query's tiles: retrieve again with the query described at
         ``TURNED_RETRIEVAL_VIEWS`` headings, 45° apart (tiles are upright, so a turned photo's own descriptor can
         miss its place), and run the cascade on the tiles not tried yet. The quarter turns are exact; the
@@ -198,13 +206,34 @@ class Localizer:
         turns the query (``rotations`` > 1) and when a heading prior turned it upright already
         (aeroloc.retrieval.retriever.prior_views)."""
         if self.options.north_up or self.options.rotations > 1 or prior_heading(priors) is not None:
-            return
+            return []
         r4 = self.retriever(image, top_n, rotations=TURNED_RETRIEVAL_VIEWS, mirror=True)
         _add_times(out, r4.times_ms)
         seen = set(tried)
         new = [t for t in r4.tile_ids if t not in seen]
         if new:
             self._cascade(image, new, top_k, priors, out, query=query)
+        return new
+
+    def _neighbour_fix(self, image, retrieved: list[str], tried: list[str], top_k: int, priors, out, query=None):
+        """When no retrieved tile placed the query: the cascade on the tiles beside the first
+        ``NEIGHBOUR_SEEDS`` retrieved ones that were not tried (aeroloc.localization.neighbours: a photo across a
+        tile border whose best tile retrieval missed)."""
+        if not self.options.neighbours or self.reranker is None:
+            return
+        from aeroloc.localization.neighbours import neighbour_candidates
+
+        t0 = time.perf_counter()
+        new = neighbour_candidates(self._neighbourhood, self.db.by_id, retrieved[:NEIGHBOUR_SEEDS], set(tried))
+        _add_times(out, {"search": (time.perf_counter() - t0) * 1000})
+        if new:
+            self._cascade(image, new, top_k, priors, out, query=query)
+
+    @cached_property
+    def _neighbourhood(self):
+        from aeroloc.localization.neighbours import Neighbourhood
+
+        return Neighbourhood(self.db.tiles)
 
     def _cascade(
         self, image, tile_ids: list[str], top_k: int, priors, out: Localization, extra_ms=0.0, query=None, turns=None
@@ -544,6 +573,7 @@ def prior_rotations(priors, diagonals: bool = True) -> list[int] | None:
 
 
 TURNED_RETRIEVAL_VIEWS = 8  # headings the turned retrieval describes a query at (45° apart, see _turned_retrieval)
+NEIGHBOUR_SEEDS = 3  # retrieved tiles whose neighbours are re-ranked when nothing else placed a query (_neighbour_fix)
 ECHO_LAZY_MAX = 5000  # tiles whose echoes a localizer finds itself when the database has none stored (~1 min)
 ECHO_SAME = 0.9  # map correlation of two copies under a footprint that makes them one ground (echoes: 0.98-1.0)
 EXACT_TURN_TOL_DEG = 30.0  # a heading known this well is matched at its own angle (the matchers bridge ~35-45°)

@@ -29,7 +29,9 @@ class LocalizeOptions:
     and for those the quarter-turn cascade could not place; ``sweep_overrides`` of its settings
     (aeroloc.matching.sweep.SWEEP_DEFAULTS); ``min_confidence`` the calibrated confidence a fix needs
     (aeroloc.localization.confidence); ``structure_refine`` moves local-feature fixes to the dense structure's
-    peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine)."""
+    peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine);
+    ``neighbours`` re-ranks the tiles beside the first retrieved ones when nothing else placed the query, before
+    the sweep (aeroloc.localization.neighbours)."""
 
     top_n: int = 20
     top_k: int = 1
@@ -44,6 +46,7 @@ class LocalizeOptions:
     min_confidence: float = 0.5
     sweep_overrides: dict[str, Any] | None = field(default=None, hash=False)
     structure_refine: bool = True
+    neighbours: bool = True
 
     def __post_init__(self):
         if not isinstance(self.top_n, int) or self.top_n < 1:

@@ -1,0 +1,63 @@
+"""The tiles beside a retrieved one: candidates retrieval ranks just out of reach.
+
+Tiles overlap (the atlas: by half), so a photo lying across the border of its best tile is also partly in that
+tile's neighbour, and retrieval may rank the neighbour first and the tile that holds the photo best nowhere in the
+top N (NAIP flight, frames just after an outage: the neighbour 1st or 2nd, the best tile out of the list; matched
+against that tile, the frame gives 31-46 inliers instead of 3-5). The neighbours of the first retrieved tiles are
+a few candidates, where a deeper list is many.
+
+:class:`Neighbourhood` buckets the tiles by their centres once, so a lookup reads a few buckets whatever the map's
+size.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+
+class Neighbourhood:
+    """Tiles by their centres (map px), in square buckets of the smallest tile side."""
+
+    def __init__(self, tiles):
+        self.tiles = list(tiles)
+        self.cell = float(min(min(t.width, t.height) for t in self.tiles)) if self.tiles else 1.0
+        self.buckets: dict[tuple[int, int], list] = defaultdict(list)
+        for t in self.tiles:
+            self.buckets[self._key(*_centre(t))].append(t)
+
+    def _key(self, x: float, y: float) -> tuple[int, int]:
+        return int(math.floor(x / self.cell)), int(math.floor(y / self.cell))
+
+    def around(self, tile, k: int = 8) -> list:
+        """The ``k`` tiles nearest ``tile`` (by centre) among those that overlap or touch it (centres at most one
+        tile side apart on each axis), not ``tile`` itself, nearest first: the ring of 8 beside it on a grid with
+        or without overlap."""
+        cx, cy = _centre(tile)
+        reach_x, reach_y = tile.width, tile.height
+        kx, ky = self._key(cx, cy)
+        nx, ny = int(math.ceil(reach_x / self.cell)) + 1, int(math.ceil(reach_y / self.cell)) + 1
+        out = []
+        for i in range(kx - nx, kx + nx + 1):
+            for j in range(ky - ny, ky + ny + 1):
+                for t in self.buckets.get((i, j), ()):
+                    x, y = _centre(t)
+                    if t.id != tile.id and abs(x - cx) <= reach_x + 0.5 and abs(y - cy) <= reach_y + 0.5:
+                        out.append(t)
+        return sorted(out, key=lambda t: ((_centre(t)[0] - cx) ** 2 + (_centre(t)[1] - cy) ** 2, t.id))[:k]
+
+
+def neighbour_candidates(near: Neighbourhood, by_id: dict, seeds: list[str], tried: set[str]) -> list[str]:
+    """The neighbours of the ``seeds`` tiles (in the seeds' order, each seed's nearest first) not in ``tried``."""
+    out: list[str] = []
+    seen = set(tried)
+    for s in seeds:
+        for t in near.around(by_id[s]):
+            if t.id not in seen:
+                seen.add(t.id)
+                out.append(t.id)
+    return out
+
+
+def _centre(t) -> tuple[float, float]:
+    return t.col + t.width / 2, t.row + t.height / 2

@@ -1,0 +1,94 @@
+"""The tiles beside a retrieved one (aeroloc.localization.neighbours): the ring of 8 on real tile grids, and a
+cross-season NAIP photo placed through a neighbour of the tile retrieval gave when its own tile was not given."""
+
+from __future__ import annotations
+
+import pytest
+
+from aeroloc.bench.metrics import tile_contains
+from aeroloc.core import geo
+from aeroloc.core.images import read_image
+from aeroloc.core.queries import load_queries
+from aeroloc.localization.neighbours import Neighbourhood, neighbour_candidates
+from aeroloc.maps.sources import open_map
+from aeroloc.maps.tiling import TileGrid
+from aeroloc.retrieval.database import Database
+
+
+def _centre(t):
+    return t.col + t.width / 2, t.row + t.height / 2
+
+
+@pytest.mark.parametrize("overlap", [0.0, 0.5])
+def test_an_inner_tile_has_the_ring_of_eight_beside_it_and_a_corner_tile_three(naip_map, overlap):
+    grid = TileGrid(open_map(naip_map), 3.0, overlap)  # 85 px tiles: a grid with inner tiles at both overlaps
+    tiles = list(grid)
+    near = Neighbourhood(tiles)
+    inner = [
+        t
+        for t in tiles
+        if 2 <= t.col // grid.step_x <= len(grid.cols) - 3 and 2 <= t.row // grid.step_y <= len(grid.rows) - 3
+    ]
+    assert inner
+    t = inner[0]
+    ring = near.around(t)
+    assert len(ring) == 8 and t not in ring
+    steps = {
+        (round((_centre(n)[0] - _centre(t)[0]) / grid.step_x), round((_centre(n)[1] - _centre(t)[1]) / grid.step_y))
+        for n in ring
+    }
+    assert steps == {(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)} - {(0, 0)}
+    corner = min(tiles, key=lambda x: (x.col, x.row))
+    # the map's corner tile: its three nearest are the ones right, below and diagonal, one step away
+    corner = min(tiles, key=lambda x: (x.col, x.row))
+    first = near.around(corner)[:3]
+    steps = {
+        (
+            round((_centre(n)[0] - _centre(corner)[0]) / grid.step_x),
+            round((_centre(n)[1] - _centre(corner)[1]) / grid.step_y),
+        )
+        for n in first
+    }
+    assert steps == {(1, 0), (0, 1), (1, 1)}
+
+
+def test_candidates_skip_what_was_tried_and_keep_the_seeds_order(naip_db):
+    db = Database(naip_db)
+    near = Neighbourhood(db.tiles)
+    a, b = db.tiles[7], db.tiles[20]
+    got = neighbour_candidates(near, db.by_id, [a.id, b.id], {a.id, b.id})
+    ring_a = [t.id for t in near.around(a) if t.id != b.id]
+    assert got[: len(ring_a)] == ring_a  # the first seed's ring first, nearest first
+    assert a.id not in got and b.id not in got and len(got) == len(set(got))
+
+
+@pytest.mark.slow
+def test_a_photo_is_placed_through_the_neighbours_of_a_tile_that_does_not_hold_it(naip_db, naip_dev):
+    """A 2012 photo (the pipeline tests' GOOD one: 350-450 inliers on its own tile) given only a neighbour of its
+    tile, one that does not contain its centre, as the retrieved list: the stage re-ranks that tile's ring,
+    which holds the photo's tile, and places it as the full pipeline does; switched off, nothing places it."""
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
+    from aeroloc.localization.results import Localization
+
+    db = Database(naip_db)
+    q = next(q for q in load_queries(naip_dev) if q.name == "naip_20120731_n_018.jpg")
+
+    def off_centre(t):  # the photo centre's distance from the tile's centre, tile px
+        x, y = t.latlon_to_pixel(q.lat, q.lon)
+        return (x - t.width / 2) ** 2 + (y - t.height / 2) ** 2
+
+    own = min((t for t in db.tiles if tile_contains(t, q.lat, q.lon)), key=off_centre)
+    near = Neighbourhood(db.tiles)
+    seed = next(t for t in near.around(own) if not tile_contains(t, q.lat, q.lon))
+    image = read_image(q.path)
+    for on in (True, False):
+        loc = Localizer(db, LocalizeOptions(method="xfeat-vlad", rerank="xfeat-lighterglue", neighbours=on), "cpu")
+        out = Localization(q.name, retrieved=[seed.id], times_ms={})
+        loc._neighbour_fix(image, [seed.id], [seed.id], 1, None, out)
+        if on:
+            assert out.status.startswith("localized"), out.status
+            assert geo.geodesic_distance(q.lat, q.lon, out.lat, out.lon) < 25.0
+            assert tile_contains(db.by_id[out.top_tiles[0]], q.lat, q.lon)
+        else:
+            assert not out.status.startswith("localized")

@@ -61,8 +61,8 @@ def add_arguments(p):
     p.add_argument(
         "--no-neighbours",
         action="store_true",
-        help="don't re-rank the tiles beside the first 3 retrieved ones when no retrieved tile placed the query "
-        "(aeroloc.localization.neighbours; before the sweep)",
+        help="don't re-rank the tiles beside the first 3 retrieved ones when no retrieved tile placed a query "
+        "without priors (aeroloc.localization.neighbours; before the sweep)",
     )
     p.add_argument(
         "--no-structure-refine",

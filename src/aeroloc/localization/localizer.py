@@ -146,11 +146,8 @@ class Localizer:
         if known and self.sweep is not None and self.reranker is not None:
             # a heading or scale prior: the cascade at the turns the heading allows, then the sweep narrowed to it
             self._cascade(image, r.tile_ids, top_k, priors, out, query=query)
-            tried = list(r.tile_ids)
             if not out.localized and AMBIGUOUS not in out.status:
-                tried += self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
-            if not out.localized and AMBIGUOUS not in out.status:
-                self._neighbour_fix(image, r.tile_ids, tried, top_k, priors, out, query)
+                self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
             if not out.localized and AMBIGUOUS not in out.status:
                 self._sweep_fix(image, priors, out, r.tile_ids, top_k)
             return out
@@ -182,7 +179,7 @@ class Localizer:
         tried = list(r.tile_ids)
         if not out.localized and AMBIGUOUS not in out.status:
             tried += self._turned_retrieval(image, r.tile_ids, top_n, top_k, priors, out, query)
-        if not out.localized and AMBIGUOUS not in out.status:
+        if not out.localized and AMBIGUOUS not in out.status and not known:
             self._neighbour_fix(image, r.tile_ids, tried, top_k, priors, out, query)
         ambiguous = AMBIGUOUS in out.status  # two places match: no later stage may pick one of them
         if not out.localized and self.sweep is not None and not known and not self.options.north_up and not ambiguous:
@@ -216,9 +213,11 @@ class Localizer:
         return new
 
     def _neighbour_fix(self, image, retrieved: list[str], tried: list[str], top_k: int, priors, out, query=None):
-        """When no retrieved tile placed the query: the cascade on the tiles beside the first
+        """When no retrieved tile placed a query without priors: the cascade on the tiles beside the first
         ``NEIGHBOUR_SEEDS`` retrieved ones that were not tried (aeroloc.localization.neighbours: a photo across a
-        tile border whose best tile retrieval missed)."""
+        tile border whose best tile retrieval missed). Not for queries with a heading or scale prior: the sweep
+        narrowed to the prior places those, and the stage before it cost the NAIP flight's re-localizations (seed
+        4: after the outage the frame the sweep placed at once was lost for 18 more frames)."""
         if not self.options.neighbours or self.reranker is None:
             return
         from aeroloc.localization.neighbours import neighbour_candidates

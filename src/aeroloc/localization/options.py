@@ -30,8 +30,8 @@ class LocalizeOptions:
     (aeroloc.matching.sweep.SWEEP_DEFAULTS); ``min_confidence`` the calibrated confidence a fix needs
     (aeroloc.localization.confidence); ``structure_refine`` moves local-feature fixes to the dense structure's
     peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine);
-    ``neighbours`` re-ranks the tiles beside the first retrieved ones when nothing else placed the query, before
-    the sweep (aeroloc.localization.neighbours)."""
+    ``neighbours`` re-ranks the tiles beside the first retrieved ones when nothing else placed a query without
+    priors, before the sweep (aeroloc.localization.neighbours)."""
 
     top_n: int = 20
     top_k: int = 1

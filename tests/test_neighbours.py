@@ -92,3 +92,30 @@ def test_a_photo_is_placed_through_the_neighbours_of_a_tile_that_does_not_hold_i
             assert tile_contains(db.by_id[out.top_tiles[0]], q.lat, q.lon)
         else:
             assert not out.status.startswith("localized")
+
+
+@pytest.mark.slow
+def test_only_queries_without_priors_reach_the_neighbours(naip_db, data_dir, monkeypatch):
+    """A photo from another city fails every stage against the NAIP map. Without priors it reaches the
+    neighbour stage before the sweep; with a heading and ground-resolution prior it goes from the cascade
+    straight to the sweep narrowed to them (the stage before it cost flight re-localizations their fix)."""
+    from aeroloc.core.priors import Priors
+    from aeroloc.localization.localizer import Localizer
+    from aeroloc.localization.options import LocalizeOptions
+
+    db = Database(naip_db)
+    loc = Localizer(db, LocalizeOptions(method="xfeat-vlad", rerank="xfeat-lighterglue"), "cpu")
+    image = read_image(data_dir / "toledo" / "photos" / "1JI_0064.JPG")
+    calls = []
+    real = Localizer._neighbour_fix
+
+    def counted(self, *a, **k):
+        calls.append(a[1])  # the retrieved tiles it was seeded from
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(Localizer, "_neighbour_fix", counted)
+    res = loc("toledo", image, top_n=5)
+    assert res.status.startswith("not localized") and len(calls) == 1 and calls[0][:3] == res.retrieved[:3]
+    calls.clear()
+    res = loc("toledo", image, top_n=5, priors=Priors(gsd_m=5.0, heading_deg=0.0, heading_tol_deg=15.0))
+    assert res.status.startswith("not localized") and calls == []

@@ -724,8 +724,6 @@ def test_frames_agreeing_relocalize_only_as_distinct_together_as_one_frame_count
     not: they are one view counted thrice. Counted whole, four such NAIP frames after an outage (1.13, 1.13, 1.02,
     1.01) agreed on a place 540 m off (70 wrong frames on the telemetry flight), szada-hu's (1.07, 1.005, 1.014,
     1.01) on one 147 m off."""
-    import numpy as np
-
     from aeroloc.flight.calibration import Pose
     from aeroloc.flight.odometry import Step
     from aeroloc.flight.tracker import Tracker, new_ground_evidence

@@ -1,9 +1,10 @@
 """Query sets: images with (optional) ground truth and (optional) priors.
 
 Accepted shapes:
-- a CSV with ``name`` and, when the truth is known, ``lat,lon`` (+ optional ``heading_deg``, ``alt_m``, ``footprint_m`` …, and the prior columns
-  of :mod:`aeroloc.core.priors`: ``gsd_m, gsd_tol, alt_agl_m, hfov_deg, focal_mm, sensor_w_mm, heading_deg,
-  heading_tol_deg``); images are looked up beside it, in a sibling ``queries/`` or ``photos/`` folder;
+- a CSV with ``name`` and, when the truth is known, ``lat,lon`` (+ optional ``heading_deg``, ``alt_m``,
+  ``footprint_m`` …, and the prior columns of :mod:`aeroloc.core.priors`: ``gsd_m, gsd_tol, alt_agl_m, hfov_deg,
+  focal_mm, sensor_w_mm, heading_deg, heading_tol_deg``); images are looked up beside it, in a sibling
+  ``queries/`` or ``photos/`` folder;
 - the seed's ``queries.txt``: header line, then ``filename lon lat`` (longitude first!);
 - a folder of photos whose EXIF holds GPS (lat, lon, altitude).
 

@@ -218,7 +218,7 @@ class Localizer:
         tile border whose best tile retrieval missed). Not for queries with a heading or scale prior: the sweep
         narrowed to the prior places those, and the stage before it cost the NAIP flight's re-localizations (seed
         4: after the outage the frame the sweep placed at once was lost for 18 more frames)."""
-        if not self.options.neighbours or self.reranker is None:
+        if not self.options.neighbours:
             return
         from aeroloc.localization.neighbours import neighbour_candidates
 

@@ -20,10 +20,9 @@ class Neighbourhood:
     """Tiles by their centres (map px), in square buckets of the smallest tile side."""
 
     def __init__(self, tiles):
-        self.tiles = list(tiles)
-        self.cell = float(min(min(t.width, t.height) for t in self.tiles)) if self.tiles else 1.0
+        self.cell = float(min((min(t.width, t.height) for t in tiles), default=1))
         self.buckets: dict[tuple[int, int], list] = defaultdict(list)
-        for t in self.tiles:
+        for t in tiles:
             self.buckets[self._key(*_centre(t))].append(t)
 
     def _key(self, x: float, y: float) -> tuple[int, int]:
@@ -37,14 +36,14 @@ class Neighbourhood:
         reach_x, reach_y = tile.width, tile.height
         kx, ky = self._key(cx, cy)
         nx, ny = int(math.ceil(reach_x / self.cell)) + 1, int(math.ceil(reach_y / self.cell)) + 1
-        out = []
+        near = []  # (squared centre distance, id, tile)
         for i in range(kx - nx, kx + nx + 1):
             for j in range(ky - ny, ky + ny + 1):
                 for t in self.buckets.get((i, j), ()):
-                    x, y = _centre(t)
-                    if t.id != tile.id and abs(x - cx) <= reach_x + 0.5 and abs(y - cy) <= reach_y + 0.5:
-                        out.append(t)
-        return sorted(out, key=lambda t: ((_centre(t)[0] - cx) ** 2 + (_centre(t)[1] - cy) ** 2, t.id))[:k]
+                    dx, dy = _centre(t)[0] - cx, _centre(t)[1] - cy
+                    if t.id != tile.id and abs(dx) <= reach_x + 0.5 and abs(dy) <= reach_y + 0.5:
+                        near.append((dx * dx + dy * dy, t.id, t))
+        return [t for *_, t in sorted(near, key=lambda n: n[:2])[:k]]
 
 
 def neighbour_candidates(near: Neighbourhood, by_id: dict, seeds: list[str], tried: set[str]) -> list[str]:

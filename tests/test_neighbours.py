@@ -38,7 +38,6 @@ def test_an_inner_tile_has_the_ring_of_eight_beside_it_and_a_corner_tile_three(n
         for n in ring
     }
     assert steps == {(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)} - {(0, 0)}
-    corner = min(tiles, key=lambda x: (x.col, x.row))
     # the map's corner tile: its three nearest are the ones right, below and diagonal, one step away
     corner = min(tiles, key=lambda x: (x.col, x.row))
     first = near.around(corner)[:3]
@@ -50,6 +49,42 @@ def test_an_inner_tile_has_the_ring_of_eight_beside_it_and_a_corner_tile_three(n
         for n in first
     }
     assert steps == {(1, 0), (0, 1), (1, 1)}
+
+
+def _holders_by_scan(tiles, x, y):
+    """The tiles holding (x, y), by a scan of every tile: what the dense fixes' lookup was before the buckets."""
+    inside = [t for t in tiles if t.col <= x <= t.col + t.width and t.row <= y <= t.row + t.height]
+    return sorted(inside, key=lambda t: (_centre(t)[0] - x) ** 2 + (_centre(t)[1] - y) ** 2)
+
+
+@pytest.mark.parametrize("zoom,overlap", [(1.0, 0.5), (3.0, 0.0), (0.5, 0.75)])
+def test_the_tiles_holding_a_point_are_those_a_scan_of_every_tile_finds(naip_map, zoom, overlap):
+    """The buckets' answer for a dense fix's position is the scan's, in the same order (nearest centre first,
+    ties in the tiles' order), on real NAIP grids, on points anywhere on and just off the map, on tile edges,
+    and on a mixed list of rectangular tiles of two sizes (a database holding two zooms of 1280x1230 raw tiles)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    m = open_map(naip_map)
+    tiles = list(TileGrid(m, zoom, overlap))
+    rect = [
+        SimpleNamespace(id=f"{w}-{c}-{r}", col=c, row=r, width=w, height=h)
+        for w, h in ((128, 123), (64, 61))
+        for c in range(0, 512, w // 2)
+        for r in range(0, 492, h // 2)
+    ]
+    rng = np.random.default_rng(0)
+    for group, (width, height) in ((tiles, (m.width, m.height)), (rect, (512, 492))):
+        near = Neighbourhood(group)
+        points = [(x, y) for x, y in rng.uniform([-20, -20], [width + 20, height + 20], (300, 2))]
+        points += [(t.col, t.row) for t in group[:20]] + [(t.col + t.width, t.row + t.height / 2) for t in group[:20]]
+        holders = 0
+        for x, y in points:
+            got = near.containing(x, y)
+            assert [t.id for t in got] == [t.id for t in _holders_by_scan(group, x, y)]
+            holders += len(got)
+        assert holders >= len(points)  # most points lie in some tile: the comparison is not of empty lists
 
 
 def test_candidates_skip_what_was_tried_and_keep_the_seeds_order(naip_db):

@@ -513,11 +513,7 @@ class Localizer:
     def _tiles_around(self, col: float, row: float, retrieved: list[str]) -> list[str]:
         """The re-ranked list for a dense position: every tile containing it (nearest centre first, retrieved or
         not), then the other retrieved tiles in retrieval order."""
-        inside = sorted(
-            (t for t in self.db.tiles if t.col <= col <= t.col + t.width and t.row <= row <= t.row + t.height),
-            key=lambda t: (t.col + t.width / 2 - col) ** 2 + (t.row + t.height / 2 - row) ** 2,
-        )
-        ids = [t.id for t in inside]
+        ids = [t.id for t in self._neighbourhood.containing(col, row)]
         taken = set(ids)
         return ids + [t for t in retrieved if t not in taken]
 

@@ -7,7 +7,8 @@ against that tile, the frame gives 31-46 inliers instead of 3-5). The neighbours
 a few candidates, where a deeper list is many.
 
 :class:`Neighbourhood` buckets the tiles by their centres once, so a lookup reads a few buckets whatever the map's
-size.
+size: the ring beside a tile (:meth:`Neighbourhood.around`) and the tiles that hold a point
+(:meth:`Neighbourhood.containing`, where a dense or swept fix lies).
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ class Neighbourhood:
 
     def __init__(self, tiles):
         self.cell = float(min((min(t.width, t.height) for t in tiles), default=1))
-        self.buckets: dict[tuple[int, int], list] = defaultdict(list)
-        for t in tiles:
-            self.buckets[self._key(*_centre(t))].append(t)
+        self.buckets: dict[tuple[int, int], list] = defaultdict(list)  # key -> [(order, tile)]
+        self.half_w = self.half_h = 0.0  # the widest and tallest tile's half side: how far a holder's centre lies
+        for i, t in enumerate(tiles):
+            self.buckets[self._key(*_centre(t))].append((i, t))
+            self.half_w, self.half_h = max(self.half_w, t.width / 2), max(self.half_h, t.height / 2)
 
     def _key(self, x: float, y: float) -> tuple[int, int]:
         return int(math.floor(x / self.cell)), int(math.floor(y / self.cell))
@@ -39,11 +42,26 @@ class Neighbourhood:
         near = []  # (squared centre distance, id, tile)
         for i in range(kx - nx, kx + nx + 1):
             for j in range(ky - ny, ky + ny + 1):
-                for t in self.buckets.get((i, j), ()):
+                for _, t in self.buckets.get((i, j), ()):
                     dx, dy = _centre(t)[0] - cx, _centre(t)[1] - cy
                     if t.id != tile.id and abs(dx) <= reach_x + 0.5 and abs(dy) <= reach_y + 0.5:
                         near.append((dx * dx + dy * dy, t.id, t))
         return [t for *_, t in sorted(near, key=lambda n: n[:2])[:k]]
+
+    def containing(self, x: float, y: float) -> list:
+        """Every tile whose pixels hold the point (``x``, ``y``) (map px, edges included), nearest centre first;
+        ties in the order the tiles were given. Reads the buckets within half the largest tile of the point: a
+        few on any map, where a scan of every tile grows with the map (a country-size database: 10^6 tiles)."""
+        kx0, ky0 = self._key(x - self.half_w, y - self.half_h)
+        kx1, ky1 = self._key(x + self.half_w, y + self.half_h)
+        inside = []  # (squared centre distance, order, tile)
+        for i in range(kx0, kx1 + 1):
+            for j in range(ky0, ky1 + 1):
+                for order, t in self.buckets.get((i, j), ()):
+                    if t.col <= x <= t.col + t.width and t.row <= y <= t.row + t.height:
+                        cx, cy = _centre(t)
+                        inside.append(((cx - x) ** 2 + (cy - y) ** 2, order, t))
+        return [t for *_, t in sorted(inside, key=lambda n: n[:2])]
 
 
 def neighbour_candidates(near: Neighbourhood, by_id: dict, seeds: list[str], tried: set[str]) -> list[str]:

@@ -303,6 +303,30 @@ def test_black_frames_coast_on_where_a_seen_frame_would_be_lost():
     assert f.lost_now(blind=True)
 
 
+def test_one_fix_just_inside_the_gate_cannot_drag_the_track():
+    """The case found on szada-hu (stop 45): a track 6 m sure, a fix 3.1 m sure lying 26 m away, just inside the
+    27 m gate. With its full gain it moved the track 20.6 m; counted as far as it lies, at most about two sigmas
+    of the track, wherever it lies in the gate. A fix within two sigmas keeps its full Kalman gain."""
+    from aeroloc.flight.filter import FilterConfig, PositionFilter
+
+    def moved(d: float, robust: float | None = None) -> tuple[float, float]:
+        f = PositionFilter(FilterConfig() if robust is None else FilterConfig(robust_sigmas=robust))
+        f.reset(0.0, 0.0, 6.0)
+        ok, _ = f.update(d, 0.0, 3.08)
+        assert ok
+        return f.est.x, f.est.sigma
+
+    f = PositionFilter()
+    f.reset(0.0, 0.0, 6.0)
+    assert f.gate(3.08) == pytest.approx(27.0, abs=0.05)
+    assert moved(26.0, 0.0)[0] == pytest.approx(26.0 * 36 / (36 + 3.08**2), abs=0.01)  # the old full gain: 20.6 m
+    pulls = [moved(d)[0] for d in np.linspace(1.0, 26.9, 60)]  # the default filter
+    assert max(pulls) < 2.3 * 6.0 and moved(26.0)[0] < 14.0
+    near = 2.0 * np.hypot(6.0, 3.08) - 0.1
+    assert moved(near) == pytest.approx(moved(near, 0.0))  # within two sigmas: the plain Kalman update
+    assert moved(26.0)[1] > moved(26.0, 0.0)[1]  # a discounted fix also narrows the uncertainty less
+
+
 def test_odometry_steps_at_a_heading_turned_while_blind_widen_the_uncertainty():
     """After an outage in which the aircraft may have turned (heading_tol_deg beyond 90°), an odometry step may
     point anywhere: the uncertainty grows by the step's length, linearly. With a known heading the step adds

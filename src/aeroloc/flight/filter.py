@@ -11,7 +11,9 @@ Motion: the odometry step when there is one (its error grows with the distance m
 over the time step, turned at the last turn rate (the frames' rotation: a camera fixed to an airframe that flies
 where it points; a turn does not stop when the camera goes black), with an uncertainty growing at a share of the
 speed bound (the aircraft may have changed its turn or speed). A fix is used only when it falls within the gate (``gate_sigmas`` of the combined uncertainty, at
-least ``gate_floor_m``): one bad fix can't drag the track. Too many rejected (or failed) fixes in a row, or an uncertainty
+least ``gate_floor_m``): one bad fix can't drag the track. Within the gate a fix far from the prediction counts for less
+(``robust_sigmas``: beyond that many sigmas of the combined uncertainty its variance grows with the distance
+squared, a Cauchy-like weight): a wrong fix just inside the gate would otherwise pull with its full gain. Too many rejected (or failed) fixes in a row, or an uncertainty
 beyond ``lost_sigma_m``, and the track is lost: the tracker re-localizes globally.
 """
 
@@ -41,6 +43,11 @@ class FilterConfig:
     global_sigma_m: float = 5.0
     gate_sigmas: float = 4.0
     gate_floor_m: float = 10.0
+    # a fix farther than this many sigmas (of the combined uncertainty) counts as if its variance were (r / this)^2
+    # larger (0: every fix inside the gate with its full gain). NAIP flights, 957 windowed fixes logged against the
+    # truth: of those accepted 2-4 sigmas from the prediction, 18 of 64 lay nearer the truth than the prediction
+    # (0 of 6 at 3.5-4), against 294 of 713 within 1 sigma
+    robust_sigmas: float = 2.0
     max_rejects: int = 6  # fixes rejected in a row before the track counts as lost (with a confirmed odometry
     # scale only once the uncertainty is beyond miss_sigma_m too: NAIP telemetry flight, 6 fixes of overlapping
     # frames over changed ground 45-53 m off a track 6 m off lost it, and the re-localization took their place)
@@ -158,7 +165,9 @@ class PositionFilter:
         if d > self.gate(sigma_fix):
             self.rejects += 1
             return False, d
-        k = e.sigma**2 / (e.sigma**2 + sigma_fix**2)
+        r = d / math.hypot(e.sigma, sigma_fix)
+        var_fix = sigma_fix**2 * (max(1.0, r / self.cfg.robust_sigmas) ** 2 if self.cfg.robust_sigmas > 0 else 1.0)
+        k = e.sigma**2 / (e.sigma**2 + var_fix)
         e.x, e.y = e.x + k * (x - e.x), e.y + k * (y - e.y)
         e.sigma = math.sqrt((1 - k) * e.sigma**2)
         self.rejects, self.unfixed_s = 0, 0.0

@@ -145,6 +145,35 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
         loc.localize_queries(db, qs, out, opts4, device="cpu", progress=False)
 
 
+@pytest.mark.slow
+def test_a_strip_too_thin_for_the_matchers_is_not_localized_and_the_run_goes_on(db, queries, tmp_path, monkeypatch):
+    """A 30x-wide strip of a real photo (200-odd x 6000 px) shrinks to 17 px on its short side at the matchers'
+    512 px working size. It is refused with that reason, and the next photo of the run is still placed. Before,
+    the extractor's error ended the whole run, and a resumed run met the same photo and stopped again. With the
+    up-front check bypassed the extractor's own error becomes that query's status, not the run's end."""
+    import cv2
+
+    import aeroloc.localization.run as loc
+    import aeroloc.localization.screening as screening
+    from aeroloc.localization.options import LocalizeOptions
+
+    good = queries[GOOD[0]]
+    photo = read_image(good.path)
+    cv2.imwrite(str(tmp_path / "strip.png"), np.tile(photo, (1, 30, 1))[..., ::-1])
+    cv2.imwrite(str(tmp_path / GOOD[0]), photo[..., ::-1])
+    (tmp_path / "q.csv").write_text(f"name,lat,lon\nstrip.png,{good.lat},{good.lon}\n{GOOD[0]},{good.lat},{good.lon}\n")
+    qs = load_queries(tmp_path / "q.csv")
+    opts = LocalizeOptions(top_n=3, method=METHOD, rerank=RERANK)
+    strip, placed = loc.localize_queries(db, qs, tmp_path / "a.csv", opts, device="cpu", progress=False)
+    assert strip.status.startswith("not localized") and "512 px working size" in strip.status, strip.status
+    assert placed.status == "localized"
+    assert geo.geodesic_distance(good.lat, good.lon, placed.lat, placed.lon) < 25.0
+    monkeypatch.setattr(screening, "refusal", lambda *a, **k: None)  # read at each call by Localizer.__call__
+    strip, placed = loc.localize_queries(db, qs, tmp_path / "b.csv", opts, device="cpu", progress=False)
+    assert strip.status.startswith("not localized: image of") and "too small for local features" in strip.status
+    assert placed.status == "localized"
+
+
 def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):
     import subprocess
     import sys

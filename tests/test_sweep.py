@@ -100,6 +100,9 @@ def test_queries_that_cannot_be_localized_say_why():
     photo = rng.integers(0, 255, (200, 300, 3), dtype=np.uint8)
     assert refusal(photo) is None
     assert "smaller than the 32 px" in refusal(photo[:20, :300])
+    strip = rng.integers(0, 255, (40, 1000, 3), dtype=np.uint8)  # 40 px high: 20 px once 1000 px become 512
+    assert refusal(strip) is None and refusal(photo, work_side=512) is None
+    assert "its short side is 20 px" in refusal(strip, work_side=512)
     assert "100 % no-data" in refusal(np.zeros((200, 300, 3), np.uint8))
     assert "uniform" in refusal(np.full((200, 300, 3), 128, np.uint8))
     # the grey levels' spread is the same number as that of the mean over the channels, no-data left out

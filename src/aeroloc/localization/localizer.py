@@ -43,7 +43,8 @@ class Localizer:
 
         if priors is not None:  # a camera's height and lens give a ground resolution only with the image's width
             priors = priors.with_image_width(image.shape[1], name)
-        why = refusal(image, self.map_gsd, priors)
+        work_side = self.reranker.conf.get("query_side") if self.reranker is not None else None
+        why = refusal(image, self.map_gsd, priors, work_side)
         if why is not None:
             return Localization(name, status=why)
         with single_threaded_blas():

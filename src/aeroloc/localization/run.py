@@ -53,12 +53,14 @@ def localize_queries(
 
 
 def _localize_one(localizer: Localizer, q, save_matches) -> Localization:
-    """One query's result; an unreadable image is "not localized" with the reason, not an error for the run."""
+    """One query's result; an unreadable image, or one a stage rejects as input (an ``AerolocError`` about this
+    query), is "not localized" with the reason, not an error for the run: a resumed run would meet the same
+    query again and stop there again."""
     try:
         image = read_image(q.path)
+        res = localizer(q.name, image, priors=getattr(q, "priors", None))
     except AerolocError as exc:
         return Localization(q.name, status=f"not localized: {exc}")
-    res = localizer(q.name, image, priors=getattr(q, "priors", None))
     if save_matches:
         from aeroloc.localization.visualize import save_result_image
 

@@ -17,11 +17,19 @@ MIN_STD = 2.0  # grey-level standard deviation under which a frame holds no stru
 SCALE_RANGE = (1 / 16, 16.0)  # query gsd / map gsd the stages can bridge (the sweep searches 0.25-2x)
 
 
-def refusal(image: np.ndarray, map_gsd: float | None = None, priors=None) -> str | None:
-    """Why ``image`` (RGB uint8) is not worth localizing, as a "not localized: ..." status; None when it is."""
+def refusal(image: np.ndarray, map_gsd: float | None = None, priors=None, work_side: int | None = None) -> str | None:
+    """Why ``image`` (RGB uint8) is not worth localizing, as a "not localized: ..." status; None when it is.
+    ``work_side``: the longer side the matchers see the query at (the cascade's ``query_side``): a strip much
+    longer than wide (a line-scan crop, a panorama) shrinks there below their minimum on its short side."""
     h, w = image.shape[:2]
     if min(h, w) < MIN_SIDE_PX:
         return f"not localized: the query is {w}x{h} px, smaller than the {MIN_SIDE_PX} px the matchers need"
+    if work_side and min(h, w) * work_side / max(h, w) < MIN_SIDE_PX:
+        short = min(h, w) * work_side / max(h, w)
+        return (
+            f"not localized: the query is {w}x{h} px; at the matchers' {work_side} px working size its short side "
+            f"is {short:.0f} px, under the {MIN_SIDE_PX} px they need (an aspect ratio above {work_side // MIN_SIDE_PX}:1)"
+        )
     valid = valid_mask(image)
     share = float(valid.mean())
     if share < MIN_CONTENT:

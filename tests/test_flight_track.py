@@ -912,3 +912,28 @@ def test_local_features_measure_a_windowed_fixs_pose_and_the_tracker_takes_it(fl
     # past the first fixes, a fix of this score is checked only every confirm_every-th time
     status, _ = tracker._window_fix(np.asarray(image), size)
     assert "confirmed by" not in status, status
+
+
+def test_a_frame_too_elongated_to_match_is_coasted_through_and_the_track_goes_on(tracked):
+    """A frame of 6000x240 px (a strip) shrinks to 10 px on its short side at the window's 240 px working size.
+    It is an unusable frame, coasted through with that reason, and the next real frame is tracked again. Before,
+    the dense stage raised an OpenCV error on it and the whole track ended with a traceback."""
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import Tracker
+
+    points, _, localizer, fl = tracked
+    i = next(k for k, p in enumerate(points) if p.source == "global fix")
+    tracker = Tracker(localizer)
+    tracker.restore(points[: i + 1])
+    ref = fl.frames[i + 1]
+    image = read_image(ref.path)
+    strip = np.tile(image, (1, 30, 1))[:240, :6000]
+    p = tracker(ref, strip)
+    assert p.source == "coasted" and p.status.startswith("unusable frame") and "short side is 10 px" in p.status
+    assert p.localized  # coasted on: a position with its sigma
+    nxt = fl.frames[i + 2]
+    q = tracker(nxt, read_image(nxt.path))
+    assert q.localized and q.source in ("tracked", "coasted"), q.status
+    first = Tracker(localizer)  # no track yet: the frame is lost with its reason, not searched
+    p = first(ref, strip)
+    assert p.source == "lost" and p.status.startswith("unusable frame")

@@ -259,21 +259,33 @@ class Tracker:
         dt = 0.0 if self.prev_time is None else ref.time - self.prev_time
         self.prev_time = ref.time
         self.compass_step = self._compass_turn(ref)
-        blank = image is None or float(image[::4, ::4].std()) < self.cfg.blank_std
+        unusable = self._unusable(image)
+        blank = unusable is not None or float(image[::4, ::4].std()) < self.cfg.blank_std
         step = None if blank else self.odo(image)
         if blank:
             self.odo.reset()
         self._carry_candidates(step, None if image is None else (image.shape[1], image.shape[0]))
         if self.filter.est is not None and self.pose is not None:
-            point = self._track(ref, image, blank, step, dt)
+            point = self._track(ref, image, blank, step, dt, unusable)
         elif blank:
-            point = self._point(ref, "lost", "undecodable frame" if image is None else "blank frame")
+            point = self._point(ref, "lost", unusable or "blank frame")
         else:
             point = self._relocalize(ref, image)
         point.ms = (time.perf_counter() - t0) * 1000
         return point
 
-    def _track(self, ref: FrameRef, image, blank: bool, step, dt: float) -> TrackPoint:
+    def _unusable(self, image) -> str | None:
+        """Why a frame can't be matched at all, or None: undecodable, or too small or too elongated for the
+        window's working size (a frame is a blank one then: coasted through, never matched; a 6000x240 px strip
+        ended the whole track with an OpenCV error in the dense stage)."""
+        from aeroloc.localization.screening import too_small
+
+        if image is None:
+            return "undecodable frame"
+        why = too_small(image.shape[1], image.shape[0], self.cfg.window.work_side)
+        return None if why is None else f"unusable frame: {why}"
+
+    def _track(self, ref: FrameRef, image, blank: bool, step, dt: float, unusable: str | None = None) -> TrackPoint:
         size = None if image is None else (image.shape[1], image.shape[0])
         own = self._own_gsd(ref, size)
         self.metric = own is not None  # this frame's scale is its own metadata's, so its step's scale is checked
@@ -309,7 +321,7 @@ class Tracker:
         e = self.filter.est
         scale = own / self.gsd if own is not None else self.pose.scale
         self.pose = Pose(e.x / self.gsd, e.y / self.gsd, self.pose.turn_deg, scale)
-        reason = "undecodable frame" if image is None else "blank frame" if blank else ""
+        reason = unusable or ("blank frame" if blank else "")
         source = "tracked" if moved and self.anchored else "coasted"
         self.frames_since_fix += 1
         due = self.frames_since_fix >= self.cfg.fix_every or e.sigma > self.cfg.filter.fix_sigma_m

@@ -22,14 +22,9 @@ def refusal(image: np.ndarray, map_gsd: float | None = None, priors=None, work_s
     ``work_side``: the longer side the matchers see the query at (the cascade's ``query_side``): a strip much
     longer than wide (a line-scan crop, a panorama) shrinks there below their minimum on its short side."""
     h, w = image.shape[:2]
-    if min(h, w) < MIN_SIDE_PX:
-        return f"not localized: the query is {w}x{h} px, smaller than the {MIN_SIDE_PX} px the matchers need"
-    if work_side and min(h, w) * work_side / max(h, w) < MIN_SIDE_PX:
-        short = min(h, w) * work_side / max(h, w)
-        return (
-            f"not localized: the query is {w}x{h} px; at the matchers' {work_side} px working size its short side "
-            f"is {short:.0f} px, under the {MIN_SIDE_PX} px they need (an aspect ratio above {work_side // MIN_SIDE_PX}:1)"
-        )
+    small = too_small(w, h, work_side)
+    if small is not None:
+        return f"not localized: {small}"
     valid = valid_mask(image)
     share = float(valid.mean())
     if share < MIN_CONTENT:
@@ -44,6 +39,21 @@ def refusal(image: np.ndarray, map_gsd: float | None = None, priors=None, work_s
                 f"not localized: the query's ground resolution {rng[0]:.3g}-{rng[1]:.3g} m/px is outside what the "
                 f"{map_gsd:.3g} m/px map can be matched at ({SCALE_RANGE[0]:.3g}-{SCALE_RANGE[1]:.3g}x)"
             )
+    return None
+
+
+def too_small(w: int, h: int, work_side: int | None = None) -> str | None:
+    """Why an image of ``w`` x ``h`` px is too small for the matchers (None when it is not): under
+    ``MIN_SIDE_PX`` a side, or so elongated that at ``work_side`` px on its longer side (the size the matchers see
+    it at) its short side is."""
+    if min(h, w) < MIN_SIDE_PX:
+        return f"the image is {w}x{h} px, smaller than the {MIN_SIDE_PX} px the matchers need"
+    if work_side and min(h, w) * work_side / max(h, w) < MIN_SIDE_PX:
+        short = min(h, w) * work_side / max(h, w)
+        return (
+            f"the image is {w}x{h} px; at the matchers' {work_side} px working size its short side is {short:.0f} "
+            f"px, under the {MIN_SIDE_PX} px they need (an aspect ratio above {work_side // MIN_SIDE_PX}:1)"
+        )
     return None
 
 

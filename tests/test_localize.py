@@ -172,6 +172,18 @@ def test_a_strip_too_thin_for_the_matchers_is_not_localized_and_the_run_goes_on(
     strip, placed = loc.localize_queries(db, qs, tmp_path / "b.csv", opts, device="cpu", progress=False)
     assert strip.status.startswith("not localized: image of") and "too small for local features" in strip.status
     assert placed.status == "localized"
+    # an error of the database or the map is not one query's: it still ends the run (a finished run is reused,
+    # so a transient fault recorded as "not localized" would be reused with it)
+    from aeroloc.core.errors import AerolocError
+    from aeroloc.localization.localizer import Localizer
+
+    def broken_store(self, name, *a, **kw):
+        raise AerolocError("the feature store is corrupt")
+
+    monkeypatch.setattr(Localizer, "__call__", broken_store)
+    with pytest.raises(AerolocError, match="feature store is corrupt"):
+        loc.localize_queries(db, qs, tmp_path / "c.csv", opts, device="cpu", progress=False)
+    assert not (tmp_path / "c.csv").exists()
 
 
 def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):

@@ -10,3 +10,10 @@ class AerolocError(Exception):
 
 class WeightsNotFound(AerolocError):
     """Model weights are not available locally and could not be downloaded."""
+
+
+class QueryImageError(AerolocError):
+    """One query's image can't be matched (too small, of the wrong shape): that query is "not localized" with this
+    message and a run over many goes on. Only for faults of the image itself, never of the database, the map or
+    the environment, whose errors must end the run: a finished run's results are reused, and a transient fault
+    recorded as a query's status would be reused with them."""

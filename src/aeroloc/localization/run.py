@@ -7,7 +7,7 @@ rename. The same run asked for twice reads the finished file back.
 
 from __future__ import annotations
 
-from aeroloc.core.errors import AerolocError
+from aeroloc.core.errors import AerolocError, QueryImageError
 from aeroloc.core.images import read_image
 from aeroloc.core.io import ResumableCSV
 from aeroloc.localization.localizer import Localizer
@@ -53,13 +53,16 @@ def localize_queries(
 
 
 def _localize_one(localizer: Localizer, q, save_matches) -> Localization:
-    """One query's result; an unreadable image, or one a stage rejects as input (an ``AerolocError`` about this
-    query), is "not localized" with the reason, not an error for the run: a resumed run would meet the same
-    query again and stop there again."""
+    """One query's result; an unreadable image, or one a stage rejects as input (``QueryImageError``), is "not
+    localized" with the reason, not an error for the run: a resumed run would meet the same query again and stop
+    there again. The other errors (the database's, the map's) still end the run."""
     try:
         image = read_image(q.path)
-        res = localizer(q.name, image, priors=getattr(q, "priors", None))
     except AerolocError as exc:
+        return Localization(q.name, status=f"not localized: {exc}")
+    try:
+        res = localizer(q.name, image, priors=getattr(q, "priors", None))
+    except QueryImageError as exc:
         return Localization(q.name, status=f"not localized: {exc}")
     if save_matches:
         from aeroloc.localization.visualize import save_result_image

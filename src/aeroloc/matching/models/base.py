@@ -59,12 +59,12 @@ def prepare(
     """
     import cv2
 
-    from aeroloc.core.errors import AerolocError
+    from aeroloc.core.errors import AerolocError, QueryImageError
     from aeroloc.core.frames import resize
 
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise AerolocError(f"local features need an RGB uint8 HxWx3 image, got {image.dtype} {image.shape}")
+        raise QueryImageError(f"local features need an RGB uint8 HxWx3 image, got {image.dtype} {image.shape}")
     h, w = image.shape[:2]
     if mask is None:
         mask = image.max(axis=2) > 0
@@ -75,7 +75,7 @@ def prepare(
         raise AerolocError(f"upscale must be a positive factor, got {upscale}")
     ww, wh = max(1, round(w * upscale)), max(1, round(h * upscale))
     if min(ww, wh) < min_side:
-        raise AerolocError(
+        raise QueryImageError(
             f"image of {w}x{h} px is too small for local features (at least {min_side} px a side "
             f"after upscaling by {upscale})"
         )

@@ -147,7 +147,7 @@ def test_results_csv_resumes_and_a_finished_run_is_reused(db, queries, tmp_path,
 
 @pytest.mark.slow
 def test_a_strip_too_thin_for_the_matchers_is_not_localized_and_the_run_goes_on(db, queries, tmp_path, monkeypatch):
-    """A 30x-wide strip of a real photo (200-odd x 6000 px) shrinks to 17 px on its short side at the matchers'
+    """A 30x-wide strip of a real photo (256 x 7680 px) shrinks to 17 px on its short side at the matchers'
     512 px working size. It is refused with that reason, and the next photo of the run is still placed. Before,
     the extractor's error ended the whole run, and a resumed run met the same photo and stopped again. With the
     up-front check bypassed the extractor's own error becomes that query's status, not the run's end."""

@@ -630,3 +630,26 @@ def test_a_photo_of_unknown_heading_is_screened_in_the_order_of_its_turn_scores(
         assert res.localized and geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 5.0, (n, res.status)
         counts.append(len(screens))
     assert not runs and 2 * counts[0] < counts[1], counts
+
+
+@pytest.mark.slow
+def test_a_window_rematch_faces_the_doubled_ground_check(szada_db, data_dir):
+    """szada_north_0_01 lies on the forest strip szada-hu's map shows twice, 547 m apart. Made 2x coarser than
+    the map (3 m/px) and given a rough prior, its tile's match is too weak to place it, and the re-match on the
+    map window that match points at placed it on the other copy, 551 m off: the window's fix skipped the
+    doubled-ground check that a tile's fix gets. Now it is refused as the tile's fix is without priors."""
+    import cv2
+
+    from aeroloc.core.priors import Priors
+    from aeroloc.localization.localizer import Localizer
+
+    q = {q.name: q for q in load_queries(data_dir / "multi-region/szada-hu/north/queries.csv", priors="none")}[
+        "szada_north_0_01.jpg"
+    ]
+    photo = read_image(q.path)
+    f = 1.2792 / 3.0  # the set's gsd_m for this photo over 2x the map's 1.5 m/px
+    coarse = cv2.resize(photo, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
+    rough = Priors(gsd_m=3.1675, gsd_tol=0.25, heading_deg=355.3, heading_tol_deg=15.0)  # the atlas's seed-0 noise
+    res = Localizer(szada_db)(q.name, coarse, priors=rough)
+    assert not res.localized or geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 25.0, res.status
+    assert not res.localized and "the map shows the query's ground twice" in res.status, res.status

@@ -17,6 +17,7 @@ class Alignment:
     lat: float = float("nan")
     lon: float = float("nan")
     tile_xy: tuple[float, float] | None = None
+    corners: np.ndarray | None = None  # the query's corners in map px where it was placed, when the aligner kept them
 
     @property
     def localized(self) -> bool:

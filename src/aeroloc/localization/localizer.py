@@ -273,6 +273,12 @@ class Localizer:
             if not a.localized:
                 a, best = self._realign_runners_up(image, rr, best, a)
                 out.best = best
+            # a window's fix faces the doubled-ground check as a tile's does (szada_north_0_01 made 2x coarser
+            # than the map, rough priors: its tile's match was weak, the window placed it on the other copy of the
+            # forest strip, 551 m off, unchecked; without priors the tile's match was checked and refused)
+            echo = self._echo_rival(a.corners, a) if a.localized and a.corners is not None else None
+            if echo:
+                a = Alignment(f"not localized: {echo}")
         out.times_ms["align"] = out.times_ms.get("align", 0.0) + (time.perf_counter() - t0) * 1000 + extra_ms
         out.lat, out.lon, out.status, out.inliers = a.lat, a.lon, a.status, best.score
         if a.localized and note:
@@ -479,7 +485,7 @@ class Localizer:
         """The best match re-matched against the map window its transform says the query covers (aeroloc.localization.window):
         the window's alignment when it passes with more inliers than the tile had (``best`` then takes the
         window's inliers and transform), else None."""
-        from aeroloc.localization.window import query_window
+        from aeroloc.localization.window import footprint_in_map, query_window
 
         tile = self.db.by_id[best.tile_id]
         if qf is None or self.map is None:
@@ -488,10 +494,12 @@ class Localizer:
         if window is None:
             return None
         n, H, n_matches, _vis = self.reranker.match_window(qf, window, tile)
-        a = align(H, n, (image.shape[1], image.shape[0]), window.tile, self.map_size, self.reranker.conf["min_inliers"])
+        size = (image.shape[1], image.shape[0])
+        a = align(H, n, size, window.tile, self.map_size, self.reranker.conf["min_inliers"])
         if not a.localized or n <= best.score:
             return None
         best.inliers, best.H, best.n_matches, best.matches = n, H, n_matches, None
+        a.corners = footprint_in_map(H, size, window.tile)
         return a
 
     def _realign_runners_up(self, image: np.ndarray, rr, best, a: Alignment):

@@ -276,7 +276,7 @@ class Localizer:
             # a window's fix faces the doubled-ground check as a tile's does (szada_north_0_01 made 2x coarser
             # than the map, rough priors: its tile's match was weak, the window placed it on the other copy of the
             # forest strip, 551 m off, unchecked; without priors the tile's match was checked and refused)
-            echo = self._echo_rival(a.corners, a) if a.localized and a.corners is not None else None
+            echo = self._echo_rival(a.corners, a) if a.localized else None  # no corners kept: None
             if echo:
                 a = Alignment(f"not localized: {echo}")
         out.times_ms["align"] = out.times_ms.get("align", 0.0) + (time.perf_counter() - t0) * 1000 + extra_ms

@@ -48,8 +48,8 @@ def too_small(w: int, h: int, work_side: int | None = None) -> str | None:
     it at) its short side is."""
     if min(h, w) < MIN_SIDE_PX:
         return f"the image is {w}x{h} px, smaller than the {MIN_SIDE_PX} px the matchers need"
-    if work_side and min(h, w) * work_side / max(h, w) < MIN_SIDE_PX:
-        short = min(h, w) * work_side / max(h, w)
+    short = min(h, w) * work_side / max(h, w) if work_side else None
+    if short is not None and short < MIN_SIDE_PX:
         return (
             f"the image is {w}x{h} px; at the matchers' {work_side} px working size its short side is {short:.0f} "
             f"px, under the {MIN_SIDE_PX} px they need (an aspect ratio above {work_side // MIN_SIDE_PX}:1)"

@@ -39,7 +39,6 @@ class Localizer:
         ``priors`` (aeroloc.core.priors.Priors) what the aircraft knew of this image's ground resolution and
         heading (unknown ones are searched)."""
         from aeroloc.core.device import single_threaded_blas
-        from aeroloc.core.images import fill_border_no_data
         from aeroloc.localization.screening import refusal
 
         if priors is not None:  # a camera's height and lens give a ground resolution only with the image's width
@@ -48,7 +47,6 @@ class Localizer:
         why = refusal(image, self.map_gsd, priors, work_side)
         if why is not None:
             return Localization(name, status=why)
-        image = fill_border_no_data(image)  # a black canvas around the photo would skew every network's input
         with single_threaded_blas():
             out = self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
             self._refine(image, out)

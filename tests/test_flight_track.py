@@ -937,3 +937,40 @@ def test_a_frame_too_elongated_to_match_is_coasted_through_and_the_track_goes_on
     first = Tracker(localizer)  # no track yet: the frame is lost with its reason, not searched
     p = first(ref, strip)
     assert p.source == "lost" and p.status.startswith("unusable frame")
+
+
+@pytest.mark.slow
+def test_a_whole_map_fix_in_flight_is_verified_by_the_matcher(flight, tracked, monkeypatch):
+    """The single-image pipeline, called by the tracker on a whole-map search, accepts no candidate on its screens
+    alone (TrackConfig.verify_global): on repeated ground two overlapping tiles' screens can agree on the same wrong
+    place (szada-hu seed 2, frame 211: 116 m off, then followed for 55 frames). The re-ranker's own settings are
+    back as they were afterwards, and the frame is still placed within 10 m of the truth."""
+    from dataclasses import replace
+
+    from aeroloc.core.images import read_image
+    from aeroloc.flight.tracker import TrackConfig, Tracker
+    from aeroloc.localization.cascade import Reranker
+
+    points, _, localizer, fl = tracked
+    i = next(k for k, p in enumerate(points) if p.source == "global fix")
+    ref = fl.frames[i]
+    image = read_image(ref.path)
+    seen = []
+    judge = Reranker._screen_accepts
+
+    def spy(self, screened, size):
+        seen.append((self.conf["accept_screen"], self.conf["accept_agreed"]))
+        return judge(self, screened, size)
+
+    monkeypatch.setattr(Reranker, "_screen_accepts", spy)
+    before = dict(localizer.reranker.conf)
+    pose, why = Tracker(localizer)._pipeline(ref, image, ref.priors)
+    assert seen and set(seen) == {(None, None)}, seen
+    assert localizer.reranker.conf == before
+    assert pose is not None, why
+    lat, lon = localizer.map.pixel_to_latlon(pose.x, pose.y)
+    truth = _truth(flight[0])[ref.name]
+    assert geo.geodesic_distance(float(truth["lat"]), float(truth["lon"]), float(lat), float(lon)) < 10.0
+    seen.clear()
+    Tracker(localizer, replace(TrackConfig(), verify_global=False))._pipeline(ref, image, ref.priors)
+    assert set(seen) == {(before["accept_screen"], before["accept_agreed"])}, seen

@@ -396,65 +396,6 @@ def test_valid_mask_is_every_pixel_not_pure_black():
     assert np.array_equal(valid_mask(img[..., 0]), img[..., 0] > 0)
 
 
-def test_only_a_black_border_is_filled_and_with_the_imagerys_mean():
-    """A black band along the edge (with the dark ring an interpolation blends beside it) takes the mean colour
-    of the rest; a black shadow inside the imagery and a stray black pixel on the edge are content and stay; an
-    image without a border is returned as it is."""
-    from aeroloc.core.images import fill_border_no_data
-
-    rng = np.random.default_rng(5)
-    image = rng.integers(1, 256, (60, 80, 3), dtype=np.uint8)
-    assert fill_border_no_data(image) is image
-    stray = image.copy()
-    stray[0, 40] = 0  # one pixel: under MIN_BORDER
-    assert fill_border_no_data(stray) is stray
-    holed = image.copy()
-    holed[:, :8] = 0  # a 10 % border on the left
-    holed[:, 8] = 3  # the ring: dark, not pure black
-    holed[30:34, 40:44] = 0  # a shadow inside
-    out = fill_border_no_data(holed)
-    rest = np.ones((60, 80), bool)
-    rest[:, :9] = False  # the border and the ring one pixel beyond it
-    want = np.round(holed[rest].reshape(-1, 3).mean(axis=0)).astype(np.uint8)
-    assert (out[:, :9] == want).all()
-    assert np.array_equal(out[:, 9:], holed[:, 9:]) and out[30:34, 40:44].max() == 0
-    assert holed[:, :8].max() == 0  # the input is not modified
-    assert fill_border_no_data(np.zeros_like(image)).max() == 0  # all no-data: nothing to fill with
-
-
-def test_a_black_canvas_is_matched_once_its_border_is_filled(naip_map, naip_dev):
-    """A 2009 photo centred on a black canvas 1.5x its side, matched against the 2020 map crop around the truth:
-    extracted as it is, the black skews XFeat's instance-normalised input and few matches verify; with the
-    border filled (``fill_border``, what every query extraction does) it matches and its centre lands within 3
-    map px of the truth."""
-    from aeroloc.matching.features import extract, to_original
-
-    row, photo = _query(naip_dev, "naip_20090818_n_000.jpg")
-    h, w = photo.shape[:2]
-    y0, x0 = round(0.25 * h), round(0.25 * w)
-    canvas = np.zeros((h + 2 * y0, w + 2 * x0, 3), np.uint8)
-    canvas[y0 : y0 + h, x0 : x0 + w] = photo
-    col, r = _true_pixel(naip_map, row)
-    c0, r0 = int(col - CROP / 2), int(r - CROP / 2)
-    extractor, matcher = build_reranker("xfeat-lighterglue", "cpu")
-    fc = extract(extractor, _crop(naip_map, c0, r0), 512)
-    inliers = {}
-    for fill in (False, True):
-        fq = extract(extractor, canvas, round(512 * max(canvas.shape[:2]) / CROP), fill_border=fill)
-        kp = to_original(fq)
-        inside = (kp[:, 0] >= x0) & (kp[:, 0] <= x0 + w) & (kp[:, 1] >= y0) & (kp[:, 1] <= y0 + h)
-        assert inside.all()  # the mask keeps keypoints off the border, filled or not
-        matches, _ = matcher.match(fq, fc)
-        v = verify_homography(kp, to_original(fc), np.asarray(matches).reshape(-1, 2), threshold_px=2.5)
-        inliers[fill] = v.n_inliers
-        if fill:
-            assert v.H is not None, inliers
-            p = v.H @ [canvas.shape[1] / 2, canvas.shape[0] / 2, 1.0]
-            err = np.hypot(p[0] / p[2] - (col - c0), p[1] / p[2] - (r - r0))
-            assert err < 3.0, f"the canvas centre lands {err:.1f} map px from the truth"
-    assert inliers[True] >= 30 and inliers[True] >= 3 * max(inliers[False], 5), inliers
-
-
 @pytest.mark.slow
 def test_fused_cross_attention_matches_like_kornias_own(naip_pair):
     """LighterGlue's cross-attention through torch's fused kernel gives the same matches as kornia's explicit

@@ -186,22 +186,6 @@ def test_a_strip_too_thin_for_the_matchers_is_not_localized_and_the_run_goes_on(
     assert not (tmp_path / "c.csv").exists()
 
 
-@pytest.mark.slow
-def test_a_photo_on_a_black_canvas_is_placed_like_the_photo(localizer, queries):
-    """A real 2009 photo centred on a black canvas 1.5x its side (a de-rotated frame, a chip cut from a rotated
-    raster) is placed within 10 m of the truth (the border's fill is tested in test_local_features:
-    ``test_a_black_canvas_is_matched_once_its_border_is_filled``)."""
-    q = queries["naip_20090818_n_000.jpg"]
-    photo = read_image(q.path)
-    h, w = photo.shape[:2]
-    y0, x0 = round(0.25 * h), round(0.25 * w)  # the photo's centre is the canvas's
-    canvas = np.zeros((h + 2 * y0, w + 2 * x0, 3), np.uint8)
-    canvas[y0 : y0 + h, x0 : x0 + w] = photo
-    res = localizer("canvas", canvas)
-    assert res.status.startswith("localized"), res.status
-    assert geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon) < 10.0
-
-
 def test_options_and_the_cli_refuse_contradicting_heading_options(naip_dev, tmp_path):
     import subprocess
     import sys

@@ -49,32 +49,3 @@ def write_image(path: str | os.PathLike, image: np.ndarray, quality: int = 95) -
     fmt = "JPEG" if path.suffix.lower() in (".jpg", ".jpeg") else "PNG"
     Image.fromarray(image).save(buf, format=fmt, **({"quality": quality} if fmt == "JPEG" else {}))
     atomic_write_bytes(path, buf.getvalue())
-
-
-MIN_BORDER = 0.01  # share of the image a black border must cover to be no-data (a stray black pixel is not)
-
-
-def fill_border_no_data(image: np.ndarray) -> np.ndarray:
-    """``image`` with its black border (pure-black regions that touch the image's edge, together at least
-    :data:`MIN_BORDER` of it, and the one-pixel ring an interpolation blends beside them) set to the mean colour of
-    the rest; ``image`` itself when it has none. Black inside the imagery (a shadow) is content and stays.
-
-    Why: the local-feature networks normalise their whole input (XFeat's first layer is an instance norm), so a
-    black border shifts the statistics every descriptor of the imagery is computed with (measured in
-    aeroloc.matching.features.extract, which fills a query's border before extraction and keeps the mask)."""
-    import cv2
-
-    black = ~valid_mask(image)
-    if black.mean() < MIN_BORDER:
-        return image
-    _, labels = cv2.connectedComponents(black.astype(np.uint8), connectivity=8)
-    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    border = np.isin(labels, edge[edge > 0])
-    if border.mean() < MIN_BORDER:
-        return image
-    blank = cv2.dilate(border.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    if blank.all():
-        return image
-    out = np.array(image, copy=True)
-    out[blank] = np.round(image[~blank].reshape(-1, 3).mean(axis=0)).astype(np.uint8)
-    return out

@@ -34,9 +34,7 @@ def confirmed_pose(
     window = footprint_window(map_, Hypothesis(fix.x, fix.y, fix.turn_deg, fix.scale, fix.score), size)
     if window is None:
         return None, 0
-    qf = extract(
-        reranker.extractor, image, int(reranker.conf["query_side"]), 0, turn_deg=float(fix.turn_deg), fill_border=True
-    )
+    qf = extract(reranker.extractor, image, int(reranker.conf["query_side"]), 0, turn_deg=float(fix.turn_deg))
     n, H = match_on_window(reranker, qf, window, fix.scale, size, reranker.conf["weak_screen_min"])
     if H is None or n < min_inliers:
         return None, n

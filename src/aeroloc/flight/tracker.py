@@ -15,7 +15,6 @@ import ctypes
 import itertools
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -103,12 +102,6 @@ class TrackConfig:
     confirm_first: int = 3
     confirm_inliers: int = 40  # (windows without the frame's ground: <= 15 in the sweep's confirmations)
     confirm_k: float = 0.5
-    verify_global: bool = True  # a whole-map fix (start, re-localization) needs the matcher: the screens alone
-    # (aeroloc.localization.cascade: a screen of accept_screen, or two tiles agreeing) settle single photos ~0.3 s
-    # sooner, but on repeated ground the two overlapping tiles of one place agree on the same wrong alignment.
-    # szada-hu seed 2 (telemetry), frame 211, just after the outage, a village of like houses: its border filled
-    # for the local features, screens of 30 and 24 on two neighbouring tiles agreed 116 m off, and the track
-    # followed that fix for 55 frames; matcher-verified, the same frame is placed 1.2 m off (50 inliers)
 
 
 @dataclass
@@ -184,21 +177,6 @@ def release_native_memory() -> None:
 
 
 _libc = None
-
-
-@contextmanager
-def _screens_never_settle(reranker):
-    """Within the block ``reranker`` (None: nothing changes) accepts no candidate on its screens alone (neither
-    ``accept_screen`` nor two tiles' agreement): every fix is verified by its matcher (TrackConfig.verify_global)."""
-    if reranker is None:
-        yield
-        return
-    conf = reranker.conf
-    reranker.conf = {**conf, "accept_screen": None, "accept_agreed": None}
-    try:
-        yield
-    finally:
-        reranker.conf = conf
 
 
 class Tracker:
@@ -438,8 +416,7 @@ class Tracker:
         """The single-image pipeline (:class:`aeroloc.localization.Localizer`) on one frame: (pose, status); the
         pose's scale the frame's own metadata's when it has one."""
         size = (image.shape[1], image.shape[0])
-        with _screens_never_settle(self.localizer.reranker if self.cfg.verify_global else None):
-            loc = self.localizer(ref.name, image, priors=priors)
+        loc = self.localizer(ref.name, image, priors=priors)
         pose = self._pose_of(loc, size) if loc.localized else None
         if pose is None and loc.localized:  # a fix without a turn or scale (the sweep's): found in a window
             pose = self._pose_at(loc, image, priors)

@@ -189,7 +189,7 @@ class QueryFeatures:
 
     def _extract(self, key: int, k: int, turn_deg: float) -> dict:
         t = time.perf_counter()
-        self.done[key] = extract(self._extractor, self.image, self._side, k, turn_deg=turn_deg, fill_border=True)
+        self.done[key] = extract(self._extractor, self.image, self._side, k, turn_deg=turn_deg)
         self.seconds += time.perf_counter() - t
         return self.done[key]
 

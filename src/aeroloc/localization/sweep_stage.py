@@ -150,7 +150,7 @@ def _confirm_turned(reranker, map_, h: Hypothesis, reach_m: float, floors: tuple
     window = footprint_window(map_, h, size)
     if window is None:
         return None, 0
-    qf = extract(reranker.extractor, up, int(reranker.conf["query_side"]), 0, mask=mask, fill_border=True)
+    qf = extract(reranker.extractor, up, int(reranker.conf["query_side"]), 0, mask=mask)
     n, H = match_on_window(reranker, qf, window, h.scale, size, screen_min)
     if H is None:
         return None, n

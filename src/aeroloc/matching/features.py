@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from aeroloc.core.frames import DIAGONAL, TILE_TURNS, resize, resize_to_side, rotation_angle, turned, unturn_points
-from aeroloc.core.images import fill_border_no_data, valid_mask
+from aeroloc.core.images import valid_mask
 from aeroloc.core.io import config_key, write_json_atomic
 from aeroloc.matching.store import FEATURE_FORMAT, FeatureStore, ShardedFeatureStore
 from aeroloc.retrieval.shards import SHARD_TILES, Shard, ShardJob, mark_complete, write_shard_file
@@ -60,7 +60,6 @@ def extract(
     rot_k: int = 0,
     mask: np.ndarray | None = None,
     turn_deg: float = 0.0,
-    fill_border: bool = False,
 ) -> dict:
     """Features of ``image`` turned by :func:`rotation_angle` (``rot_k``) and ``turn_deg`` more, resized to ``side``.
 
@@ -71,13 +70,6 @@ def extract(
     coarser than the tiles). ``keypoints`` stay in the frame the extractor saw (what matchers with positional
     encodings expect); ``scale``, ``rot_k``, ``orig_size`` (and ``turn_affine``) let :func:`to_original` map
     them back for geometry, so every transform relates the original image whatever the turn.
-
-    ``fill_border`` (queries; a tile's no-data is the map's edge, and the stores hold tiles as they are): a black
-    border the photo arrives with (padding, a turned canvas's black corners) is filled with the imagery's mean
-    colour before the network sees it (:func:`aeroloc.core.images.fill_border_no_data`); the mask still keeps
-    keypoints off it. The networks normalise their whole input, so the black skewed every descriptor: a 2009 NAIP
-    photo centred on a black canvas 1.5x its side verified 24 inliers on the map crop around its truth, 272
-    filled. Retrieval and the dense stage see the border as it is: they mask black themselves.
     """
     h, w = image.shape[:2]
     if mask is None:
@@ -90,8 +82,6 @@ def extract(
         img, turned_mask, turn = turned(np.ascontiguousarray(img), extra)
         m = turned_mask & (turned(np.ascontiguousarray(m).astype(np.uint8) * 255, extra, "black")[0] > 0)
         side = round(max(img.shape[:2]) * factor)
-    if fill_border and not m.all():
-        img = fill_border_no_data(np.ascontiguousarray(img))
     small, s = resize_to_side(np.ascontiguousarray(img), side)
     if s != 1.0:
         m = resize(m.astype(np.uint8), s, nearest=True) > 0

@@ -1,0 +1,111 @@
+#!/usr/bin/env python
+"""Photos on a black canvas: the same photos as they are, turned about their centre on a black-cornered canvas,
+and centred on a black canvas 1.5x their side, each localized without priors.
+
+Why: a photo that arrives padded or de-rotated carries a black border that the local-feature networks normalise
+with the imagery (README #13, "A photo on a black canvas"). This prints what that costs, so a remedy can be
+measured against it. The canvases keep the photo's centre at theirs, so the truth columns stay exact; they are
+written as PNG (no JPEG fringe) under ``--work``. The truth is read for scoring only.
+
+usage: python benchmarks/black_canvas.py DB QUERIES.csv [--n 20] [--match 2009,2010] [--work DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ANGLES = (45, 100, 137, 225, 300, 160, 200, 250, 75, 20)  # degrees the content turns, cycled over the photos
+
+
+def on_turned_canvas(photo: np.ndarray, angle: float) -> np.ndarray:
+    """``photo`` turned ``angle`` degrees clockwise about its centre on a black square canvas that holds it whole,
+    its centre at the canvas's (pixel-centre coordinates (n - 1) / 2 on both)."""
+    h, w = photo.shape[:2]
+    side = int(math.ceil(math.hypot(w, h))) + 2
+    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), -angle, 1.0)
+    m[:, 2] += [(side - 1) / 2 - (w - 1) / 2, (side - 1) / 2 - (h - 1) / 2]
+    return cv2.warpAffine(photo, m, (side, side), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
+
+
+def on_padded_canvas(photo: np.ndarray) -> np.ndarray:
+    """``photo`` centred on a black canvas 1.5x its side (the same margin each side)."""
+    h, w = photo.shape[:2]
+    y0, x0 = round(0.25 * h), round(0.25 * w)
+    canvas = np.zeros((h + 2 * y0, w + 2 * x0, 3), np.uint8)
+    canvas[y0 : y0 + h, x0 : x0 + w] = photo
+    return canvas
+
+
+def score(localizer, queries, images: dict, t_m: float, wrong_m: float) -> tuple[int, int, int, float]:
+    """(placed, within t, wrong, median s per photo) of ``images`` (name -> RGB) against ``queries``' truth."""
+    from aeroloc.core import geo
+
+    placed = within = wrong = 0
+    seconds = []
+    for q in queries:
+        t0 = time.perf_counter()
+        res = localizer(q.name, images[q.name])
+        seconds.append(time.perf_counter() - t0)
+        if not res.localized:
+            continue
+        placed += 1
+        err = float(geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon))
+        within += err <= t_m
+        wrong += err > wrong_m
+    return placed, within, wrong, statistics.median(seconds)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("db")
+    ap.add_argument("queries")
+    ap.add_argument("--n", type=int, default=20, help="photos (every other one of those matching, in order)")
+    ap.add_argument("--match", default="", help="comma-separated substrings a photo's name must hold (one)")
+    ap.add_argument("--work", type=Path, default=None, help="where the canvases are written (default: a temp dir)")
+    args = ap.parse_args(argv)
+
+    from aeroloc import Database, LocalizeOptions, Localizer, load_queries, read_image
+
+    keys = [k for k in args.match.split(",") if k]
+    queries = [q for q in load_queries(args.queries, priors="none") if not keys or any(k in q.name for k in keys)]
+    queries = queries[::2][: args.n]
+    db = Database(args.db)
+    gsd = float(db.info["map"]["resolution_m"])
+    t_m, wrong_m = max(5.0, 2 * gsd), max(25.0, 10 * gsd)
+    work = args.work or Path(tempfile.mkdtemp(prefix="black-canvas-"))
+    work.mkdir(parents=True, exist_ok=True)
+    photos = {q.name: read_image(q.path) for q in queries}
+    variants = {
+        "as they are": photos,
+        "turned on a black-cornered canvas": {
+            n: on_turned_canvas(p, ANGLES[i % len(ANGLES)]) for i, (n, p) in enumerate(photos.items())
+        },
+        "centred on a black canvas 1.5x their side": {n: on_padded_canvas(p) for n, p in photos.items()},
+    }
+    for label, images in variants.items():  # written out, to look at
+        folder = work / label.replace(" ", "-")
+        folder.mkdir(exist_ok=True)
+        for n, im in images.items():
+            cv2.imwrite(str(folder / (Path(n).stem + ".png")), im[..., ::-1])
+    localizer = Localizer(db, LocalizeOptions())
+    print(
+        f"{len(queries)} photos of {args.queries}, no priors; t {t_m:.0f} m, wrong > {wrong_m:.0f} m; canvases in {work}"
+    )
+    print("| the same photos | placed | within t | wrong | median s |\n|---|---|---|---|---|")
+    for label, images in variants.items():
+        placed, within, wrong, med = score(localizer, queries, images, t_m, wrong_m)
+        print(f"| {label} | {placed} | {within} | {wrong} | {med:.2f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

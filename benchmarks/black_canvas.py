@@ -23,17 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ANGLES = (45, 100, 137, 225, 300, 160, 200, 250, 75, 20)  # degrees the content turns, cycled over the photos
-
-
-def on_turned_canvas(photo: np.ndarray, angle: float) -> np.ndarray:
-    """``photo`` turned ``angle`` degrees clockwise about its centre on a black square canvas that holds it whole,
-    its centre at the canvas's (pixel-centre coordinates (n - 1) / 2 on both)."""
-    h, w = photo.shape[:2]
-    side = int(math.ceil(math.hypot(w, h))) + 2
-    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), -angle, 1.0)
-    m[:, 2] += [(side - 1) / 2 - (w - 1) / 2, (side - 1) / 2 - (h - 1) / 2]
-    return cv2.warpAffine(photo, m, (side, side), flags=cv2.INTER_LINEAR, borderValue=(0, 0, 0))
+ANGLES = (45, 100, 137, 225, 300, 160, 200, 250, 75, 20)  # degrees the content turns clockwise, cycled over
+# the photos (aeroloc.core.frames.turned: a canvas that holds the whole photo, its centre at the photo's)
 
 
 def on_padded_canvas(photo: np.ndarray) -> np.ndarray:
@@ -45,23 +36,22 @@ def on_padded_canvas(photo: np.ndarray) -> np.ndarray:
     return canvas
 
 
-def score(localizer, queries, images: dict, t_m: float, wrong_m: float) -> tuple[int, int, int, float]:
-    """(placed, within t, wrong, median s per photo) of ``images`` (name -> RGB) against ``queries``' truth."""
+def score(localizer, queries, images: dict, map_gsd: float) -> tuple[int, int, int, float]:
+    """(placed, within t, wrong, median s per photo) of ``images`` (name -> RGB) against ``queries``' truth,
+    t and wrong as the atlas counts them (aeroloc.bench.metrics.scaled_recall)."""
+    from aeroloc.bench.metrics import scaled_recall
     from aeroloc.core import geo
 
-    placed = within = wrong = 0
-    seconds = []
+    per_query, seconds = [], []
     for q in queries:
         t0 = time.perf_counter()
         res = localizer(q.name, images[q.name])
         seconds.append(time.perf_counter() - t0)
-        if not res.localized:
-            continue
-        placed += 1
-        err = float(geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon))
-        within += err <= t_m
-        wrong += err > wrong_m
-    return placed, within, wrong, statistics.median(seconds)
+        err = float(geo.geodesic_distance(q.lat, q.lon, res.lat, res.lon)) if res.localized else float("nan")
+        per_query.append({"error_m": err})
+    r = scaled_recall(per_query, map_gsd)
+    placed = sum(math.isfinite(q["error_m"]) for q in per_query)
+    return placed, round(r["georef_recall@t"] * len(per_query)), r["wrong_n"], statistics.median(seconds)
 
 
 def main(argv=None) -> int:
@@ -74,20 +64,21 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from aeroloc import Database, LocalizeOptions, Localizer, load_queries, read_image
+    from aeroloc.core.frames import turned
 
     keys = [k for k in args.match.split(",") if k]
     queries = [q for q in load_queries(args.queries, priors="none") if not keys or any(k in q.name for k in keys)]
     queries = queries[::2][: args.n]
     db = Database(args.db)
     gsd = float(db.info["map"]["resolution_m"])
-    t_m, wrong_m = max(5.0, 2 * gsd), max(25.0, 10 * gsd)
+    t_m, wrong_m = max(5.0, 2 * gsd), max(25.0, 10 * gsd)  # as scaled_recall counts them: for the header
     work = args.work or Path(tempfile.mkdtemp(prefix="black-canvas-"))
     work.mkdir(parents=True, exist_ok=True)
     photos = {q.name: read_image(q.path) for q in queries}
     variants = {
         "as they are": photos,
         "turned on a black-cornered canvas": {
-            n: on_turned_canvas(p, ANGLES[i % len(ANGLES)]) for i, (n, p) in enumerate(photos.items())
+            n: turned(p, -ANGLES[i % len(ANGLES)], "black")[0] for i, (n, p) in enumerate(photos.items())
         },
         "centred on a black canvas 1.5x their side": {n: on_padded_canvas(p) for n, p in photos.items()},
     }
@@ -102,7 +93,7 @@ def main(argv=None) -> int:
     )
     print("| the same photos | placed | within t | wrong | median s |\n|---|---|---|---|---|")
     for label, images in variants.items():
-        placed, within, wrong, med = score(localizer, queries, images, t_m, wrong_m)
+        placed, within, wrong, med = score(localizer, queries, images, gsd)
         print(f"| {label} | {placed} | {within} | {wrong} | {med:.2f} |", flush=True)
     return 0
 

@@ -31,7 +31,8 @@ class LocalizeOptions:
     (aeroloc.localization.confidence); ``structure_refine`` moves local-feature fixes to the dense structure's
     peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine);
     ``neighbours`` re-ranks the tiles beside the first retrieved ones when nothing else placed a query without
-    priors, before the sweep (aeroloc.localization.neighbours)."""
+    priors, before the sweep (aeroloc.localization.neighbours); ``trim_canvas`` cuts a photo on a black canvas to
+    its centred window of imagery (aeroloc.core.canvas)."""
 
     top_n: int = 20
     top_k: int = 1
@@ -47,6 +48,7 @@ class LocalizeOptions:
     sweep_overrides: dict[str, Any] | None = field(default=None, hash=False)
     structure_refine: bool = True
     neighbours: bool = True
+    trim_canvas: bool = True
 
     def __post_init__(self):
         if not isinstance(self.top_n, int) or self.top_n < 1:
@@ -122,6 +124,7 @@ class LocalizeOptions:
             **({"sweep": self.sweep_conf()} if self.sweep and self.rerank else {}),
             **({"min_confidence": self.min_confidence} if self.min_confidence != 0.5 else {}),
             **({"structure_refine": False} if not self.structure_refine else {}),
+            **({"trim_canvas": False} if not self.trim_canvas else {}),
             code=code_identity(),
         )
         return json.dumps(kw, sort_keys=True, default=str)

@@ -36,7 +36,7 @@ import yaml
 from aeroloc.flight.filter import FilterConfig
 from aeroloc.flight.frames import load_flight
 from aeroloc.flight.metrics import score
-from aeroloc.flight.run import track_flight
+from aeroloc.flight.run import read_track, track_flight
 from aeroloc.flight.tracker import TrackConfig
 from aeroloc.localization.localizer import Localizer
 from aeroloc.retrieval.database import Database
@@ -201,11 +201,13 @@ def run_one(f: dict, out: Path, every: int = 0, traced: bool = False) -> dict:
 
     t0 = time.perf_counter()
     try:
-        points = track_flight(localizer, flight, folder / "track.csv", config, on_point=on_point)
+        # as `aeroloc track` runs: the points are not kept while flying, and are read back to be scored
+        track_flight(localizer, flight, folder / "track.csv", config, on_point=on_point, keep=False)
     finally:
         if log is not None:
             log.close()
     wall = time.perf_counter() - t0
+    points = read_track(folder / "track.csv")
     rss.append(rss_mb())
     s = score(points, truth, localizer.map.resolution_m, gap_end)
     return {"name": f["name"], "score": s, "rss": rss, "wall": wall, "telemetry": bool(f.get("telemetry"))}

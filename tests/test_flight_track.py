@@ -423,6 +423,35 @@ def test_telemetry_height_and_lens_set_every_frames_ground_resolution(flight, tr
     assert max(gsds) / min(gsds) > 1.01  # the height did change along the flight
 
 
+def test_a_track_not_kept_in_memory_resumes_and_is_read_back_from_its_csv(tracked, tmp_path, monkeypatch):
+    """``keep=False`` (how ``aeroloc track`` flies: memory flat over hours) keeps no points, and the CSV read back
+    holds the same track as the run that kept them; the C heap is trimmed every ``trim_every`` frames."""
+    import aeroloc.flight.run as run
+    from aeroloc.flight.run import read_track, track_flight
+    from aeroloc.flight.tracker import TrackConfig
+
+    points, _, localizer, fl = tracked
+    trims = []
+    monkeypatch.setattr(run, "release_native_memory", lambda: trims.append(1))
+    config = TrackConfig(trim_every=5)
+
+    def rows(ps):
+        return [{k: v for k, v in p.row().items() if k != "ms"} for p in ps]
+
+    whole = tmp_path / "whole.csv"
+    assert track_flight(localizer, fl, whole, config, keep=False) is None
+    assert rows(read_track(whole)) == rows(points)  # the trims change nothing
+    assert len(trims) == len(points) // 5
+    resumed = tmp_path / "resumed.csv"
+    assert track_flight(localizer, fl, resumed, config, limit=12, keep=False) is None  # interrupted
+    assert track_flight(localizer, fl, resumed, config, keep=False) is None
+    back = read_track(resumed)
+    assert [p.name for p in back] == [p.name for p in points]
+    assert rows(back[:12]) == rows(points[:12])
+    with pytest.raises(AerolocError, match="track file not found"):
+        read_track(tmp_path / "none.csv")
+
+
 def test_interrupted_track_resumes_where_it_stopped(tracked, tmp_path, monkeypatch):
     import aeroloc.flight.run as run
     from aeroloc.flight.run import track_flight
@@ -502,6 +531,25 @@ def test_geojson_and_kml(tracked, tmp_path, flight):
     write_kml(tmp_path / "t.kml", points)
     text = (tmp_path / "t.kml").read_text()
     assert text.count("<Placemark") == len(located) + 1 and "<LineString" in text
+
+
+def test_the_track_command_writes_its_outputs_from_the_csv_it_streamed(tracked, tmp_path, flight, naip_db, capsys):
+    """``aeroloc track`` keeps no points while flying; its GeoJSON and summary come from the CSV read back, and
+    hold the same track as the Python API's."""
+    from aeroloc.cli import main
+
+    points, _, _, _ = tracked
+    folder = flight[0]
+    out, gj = tmp_path / "track.csv", tmp_path / "t.geojson"
+    args = ["track", str(naip_db), str(folder / "frames.csv"), "--out", str(out), "--geojson", str(gj)]
+    assert main([*args, "--telemetry", str(folder / "telemetry.csv")]) == 0
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert summary.startswith(f"{len(points)} frames: ")
+    located = [p for p in points if p.localized]
+    line, *pts = json.loads(gj.read_text())["features"]
+    assert len(pts) == len(located)
+    got = np.array(line["geometry"]["coordinates"])
+    assert np.abs(got - [[p.lon, p.lat] for p in located]).max() < 1e-7  # the CSV's 1e-8 degrees
 
 
 def test_mavlink_gps_input_decoded_by_a_real_listener(tracked):

@@ -42,7 +42,7 @@ def run(args) -> int:
     from aeroloc.core.errors import AerolocError
     from aeroloc.flight.filter import FilterConfig
     from aeroloc.flight.frames import load_flight
-    from aeroloc.flight.run import track_flight
+    from aeroloc.flight.run import read_track, track_flight
     from aeroloc.flight.tracker import TrackConfig
     from aeroloc.localization.localizer import Localizer
     from aeroloc.localization.options import LocalizeOptions
@@ -59,10 +59,12 @@ def run(args) -> int:
 
         mav = MavlinkOutput(args.mavlink)
     try:
-        points = track_flight(localizer, flight, args.out, config, on_point=mav.send if mav else None)
+        # the points are not kept while flying (memory flat over hours); the outputs read them back from the CSV
+        track_flight(localizer, flight, args.out, config, on_point=mav.send if mav else None, keep=False)
     finally:
         if mav is not None:
             mav.close()
+    points = read_track(args.out)
     truth = read_truth(args.truth) if args.truth else {f.name: f.truth for f in flight.frames if f.truth}
     write_outputs(args, points, truth, localizer.db.info["map"]["path"])
     by = {s: sum(p.source == s for p in points) for s in ("global fix", "tracked", "coasted", "lost")}

@@ -3,7 +3,9 @@
 Rows are flushed as they come (:class:`aeroloc.core.io.ResumableCSV`); a run interrupted and started again with
 the same database, flight and settings keeps the finished rows and continues after the last one from its
 position, pose and velocity (the odometry chain restarts there). Memory does not grow with the flight: frames
-are read one at a time and only the filter state is kept.
+are read one at a time, the tracker keeps its filter state and a few frames' candidates, and with ``keep=False``
+the points are not kept either (the CSV holds them: :func:`read_track`); every ``TrackConfig.trim_every`` frames
+the C heap's free pages go back to the system.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from dataclasses import asdict
 from aeroloc.core.io import ResumableCSV, config_key, file_identity
 from aeroloc.core.provenance import LOCALIZATION_PACKAGES, code_identity
 from aeroloc.flight.frames import Flight
-from aeroloc.flight.tracker import COLUMNS, TrackConfig, Tracker, TrackPoint
+from aeroloc.flight.tracker import COLUMNS, TrackConfig, Tracker, TrackPoint, release_native_memory
 
 
 def signature(db, flight: Flight, options, config: TrackConfig) -> str:
@@ -56,29 +58,58 @@ def _torch_threads() -> int:
 
 
 def track_flight(
-    localizer, flight: Flight, out, config: TrackConfig | None = None, on_point=None, limit: int | None = None
-) -> list[TrackPoint]:
+    localizer,
+    flight: Flight,
+    out,
+    config: TrackConfig | None = None,
+    on_point=None,
+    limit: int | None = None,
+    keep: bool = True,
+) -> list[TrackPoint] | None:
     """Track ``flight`` into ``out``; ``on_point(point)`` is called for every new point (MAVLink, progress);
-    ``limit`` stops after that many frames in all (the rest stays for a resume: tests of interruption)."""
+    ``limit`` stops after that many frames in all (the rest stays for a resume: tests of interruption). Returns
+    every point (a resumed run's earlier ones included), or None with ``keep=False``: a flight of hours then runs
+    in flat memory (Python's allocations grew ~0.5 KB a frame with the points kept), and :func:`read_track`
+    reads them back from ``out``."""
     config = config or TrackConfig()
     csv = ResumableCSV(out, COLUMNS, signature(localizer.db, flight, localizer.options, config))
     done = csv.finished()
     if done is not None:
-        return [TrackPoint.from_row(r) for r in done]
-    rows = csv.start()
-    points = [TrackPoint.from_row(r) for r in rows]
+        return [TrackPoint.from_row(r) for r in done] if keep else None
+    earlier = [TrackPoint.from_row(r) for r in csv.start()]
     tracker = Tracker(localizer, config)
-    tracker.restore(points)
+    tracker.restore(earlier)
+    n = len(earlier)
+    points = earlier if keep else None
+    del earlier
     try:
-        for ref, image in flight.images(len(points)):
-            if limit is not None and len(points) >= limit:
+        for ref, image in flight.images(n):
+            if limit is not None and n >= limit:
                 return points
             p = tracker(ref, image)
             csv.write(p.row())
-            points.append(p)
+            n += 1
+            if points is not None:
+                points.append(p)
             if on_point is not None:
                 on_point(p)
+            if config.trim_native and config.trim_every and n % config.trim_every == 0:
+                release_native_memory()
         csv.finish()
     finally:
         csv.close()
     return points
+
+
+def read_track(path) -> list[TrackPoint]:
+    """The points of a track CSV (:func:`track_flight`'s ``out``), in order."""
+    import csv
+    from pathlib import Path
+
+    from aeroloc.core.errors import AerolocError
+
+    path = Path(path)
+    if not path.is_file():
+        raise AerolocError(f"{path}: track file not found")
+    with open(path, newline="") as f:
+        return [TrackPoint.from_row(r) for r in csv.DictReader(f)]

@@ -93,6 +93,7 @@ class TrackConfig:
     vote_m: float = 15.0  # ... within max(this, 3 map px)
     vote_turn_deg: float = 6.0  # ... and this turn
     trim_native: bool = True  # after a whole-map search, native heap returned to the system (glibc malloc_trim)
+    trim_every: int = 500  # ... and every this many frames (aeroloc.flight.run.track_flight; 0: never)
     confirm_below: float = 0.35  # a windowed fix scoring below this is checked by local features
     # (aeroloc.flight.confirm_fix) on every ``confirm_every``-th such fix (~0.1-0.2 s each), and so is each of the
     # first ``confirm_first`` fixes after a re-localization, whatever its score; confirmed with ``confirm_inliers``,

@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """Photos on a black canvas: the same photos as they are, turned about their centre on a black-cornered canvas,
 and centred on a black canvas 1.5x their side, each localized without priors, with the canvas cut away (the
-pipeline's default, aeroloc.core.canvas) and kept (``LocalizeOptions(trim_canvas=False)``).
+pipeline's default: the photo alone, turned back upright and cut, aeroloc.core.canvas) and kept
+(``LocalizeOptions(trim_canvas=False)``).
 
 Why: a photo that arrives padded or de-rotated carries a black border that the local-feature networks normalise
 with the imagery (README #13, "A photo on a black canvas"). This prints what that costs, so a remedy can be
@@ -94,8 +95,8 @@ def main(argv=None) -> int:
     )
     print("| the same photos | canvas | placed | within t | wrong | median s |\n|---|---|---|---|---|---|")
     for label, images in variants.items():
-        # photos as they are sit on no canvas: cutting it away (aeroloc.core.canvas) leaves them as they are
-        runs = {"-": trimmed} if images is photos else {"cut away (as built)": trimmed, "kept": kept}
+        # photos as they are sit on no canvas: the view (aeroloc.core.canvas) leaves them as they are
+        runs = {"-": trimmed} if images is photos else {"the photo alone (as built)": trimmed, "kept": kept}
         for how, localizer in runs.items():
             placed, within, wrong, med = score(localizer, queries, images, gsd)
             print(f"| {label} | {how} | {placed} | {within} | {wrong} | {med:.2f} |", flush=True)

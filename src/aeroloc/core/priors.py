@@ -257,6 +257,15 @@ class Priors:
             return replace(self, gsd_m=self.gsd_m * k, width_px=width_px)
         return build_priors(self.inputs(), dict(self.sources), width_px=width_px, where=where)
 
+    def for_view(self, width_px: int, turn_deg: float = 0.0) -> Priors:
+        """These priors for a view of the same pixels: a window ``width_px`` wide cut from the image (its ground
+        resolution unchanged, where :meth:`with_image_width` would rescale it for a resized image), turned
+        ``turn_deg`` (OpenCV, counter-clockwise) first, which takes that much from the heading."""
+        out = replace(self, width_px=int(width_px))
+        if self.heading_deg is not None and turn_deg:
+            out = replace(out, heading_deg=_wrap360(self.heading_deg - turn_deg))
+        return out
+
     def perturbed(self, seed: int, key: str) -> Priors:
         """The known values with the noise of :func:`perturbation` (``key``: the query name). The result's ground
         resolution is a given value (the camera inputs it came from are dropped: they would contradict it)."""

@@ -9,7 +9,7 @@ from functools import cached_property
 
 import numpy as np
 
-from aeroloc.core.canvas import Window, photo_window
+from aeroloc.core.canvas import View, photo_view
 from aeroloc.localization.alignment import Alignment, align, reach_m
 from aeroloc.localization.options import LocalizeOptions
 from aeroloc.localization.results import AMBIGUOUS, Localization
@@ -44,9 +44,11 @@ class Localizer:
 
         if priors is not None:  # a camera's height and lens give a ground resolution only with the image's width
             priors = priors.with_image_width(image.shape[1], name)
-        window = photo_window(image) if self.options.trim_canvas else None
-        if window is not None:  # a photo on a black canvas: its centred window, which places the same centre
-            image = window.cut(image)
+        view = photo_view(image) if self.options.trim_canvas else None
+        if view is not None:  # a photo on a black canvas: the photo alone, whose centre is the same point
+            image = view.image
+            if priors is not None:
+                priors = priors.for_view(image.shape[1], view.turn_deg)
         work_side = self.reranker.conf.get("query_side") if self.reranker is not None else None
         why = refusal(image, self.map_gsd, priors, work_side)
         if why is not None:
@@ -54,8 +56,8 @@ class Localizer:
         with single_threaded_blas():
             out = self._localize(name, image, top_n or self.options.top_n, self.options.top_k, priors)
             self._refine(image, out)
-        if window is not None:
-            _in_whole_image(out, window)
+        if view is not None:
+            _in_whole_image(out, view)
         return self._assess(out)
 
     def _refine(self, image: np.ndarray, out: Localization) -> None:
@@ -612,15 +614,22 @@ def _add_times(out: Localization, times_ms: dict) -> None:
         out.times_ms[stage] = out.times_ms.get(stage, 0.0) + ms
 
 
-def _in_whole_image(out: Localization, window: Window) -> None:
-    """A result found on a photo's window, in the pixels of the whole image it was cut from: the best candidate's
-    homography and match points (a flight's pose reads the homography at the frame's centre). Dense and sweep
-    results hold the centre only, which the centred window keeps."""
+def _in_whole_image(out: Localization, view: View) -> None:
+    """A result found on a photo's view (aeroloc.core.canvas), told in the whole image it was made from: the best
+    candidate's homography and match points (a flight's pose reads the homography at the frame's centre), and the
+    dense and sweep placements' turn. Their centre is the view's, which is the whole image's."""
+    from dataclasses import replace
+
     best = out.best
-    if best is None:
-        return
-    if best.H is not None:
-        best.H = best.H @ np.linalg.inv(window.to_image())
-    if best.matches is not None:
+    if best is not None and best.H is not None:
+        best.H = best.H @ view.to_view
+    if best is not None and best.matches is not None:
         q, t, inl = best.matches
-        best.matches = (np.asarray(q) + (window.x0, window.y0), t, inl)
+        back = np.linalg.inv(view.to_view)
+        q = np.asarray(q, np.float64) @ back[:2, :2].T + back[:2, 2]
+        best.matches = (q, t, inl)
+    if view.turn_deg:
+        if out.dense is not None:
+            out.dense.match.angle = out.dense.match.angle + view.turn_deg
+        if out.placement is not None:
+            out.placement = replace(out.placement, angle=out.placement.angle + view.turn_deg)

@@ -31,8 +31,8 @@ class LocalizeOptions:
     (aeroloc.localization.confidence); ``structure_refine`` moves local-feature fixes to the dense structure's
     peak at their own heading and scale when the two agree (aeroloc.localization.structure_refine);
     ``neighbours`` re-ranks the tiles beside the first retrieved ones when nothing else placed a query without
-    priors, before the sweep (aeroloc.localization.neighbours); ``trim_canvas`` cuts a photo on a black canvas to
-    its centred window of imagery (aeroloc.core.canvas)."""
+    priors, before the sweep (aeroloc.localization.neighbours); ``trim_canvas`` replaces a photo on a black canvas
+    with the photo alone, turned back upright and cut to its centred window (aeroloc.core.canvas)."""
 
     top_n: int = 20
     top_k: int = 1

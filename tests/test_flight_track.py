@@ -327,6 +327,26 @@ def test_one_fix_just_inside_the_gate_cannot_drag_the_track():
     assert moved(26.0)[1] > moved(26.0, 0.0)[1]  # a discounted fix also narrows the uncertainty less
 
 
+def test_a_track_reports_no_more_certainty_than_its_last_fix():
+    """Ten fixes of overlapping frames, each 5 m sure, shrink the Kalman sigma to ~1.7 m, but they share their
+    errors (the same ground), so the track reports 5 m; odometry that grows the filter's sigma beyond it reports
+    that, a surer fix lowers the floor, and a lost track reports none."""
+    from aeroloc.flight.filter import PositionFilter
+
+    f = PositionFilter()
+    f.reset(0.0, 0.0, 5.0)
+    for _ in range(10):
+        assert f.update(0.5, 0.0, 5.0)[0]
+    assert f.est.sigma < 2.0 and f.reported_sigma == 5.0
+    f.predict_coast(4.0)  # blind for 4 s: the filter's own sigma passes the floor
+    assert f.reported_sigma == f.est.sigma > 5.0
+    f.reset(0.0, 0.0, 30.0)
+    assert f.update(1.0, 0.0, 2.0)[0]
+    assert f.reported_sigma == pytest.approx(max(f.est.sigma, 2.0))
+    f.lose()
+    assert math.isnan(f.reported_sigma)
+
+
 def test_odometry_steps_at_a_heading_turned_while_blind_widen_the_uncertainty():
     """After an outage in which the aircraft may have turned (heading_tol_deg beyond 90°), an odometry step may
     point anywhere: the uncertainty grows by the step's length, linearly. With a known heading the step adds

@@ -818,7 +818,7 @@ class Tracker:
             float(lat),
             float(lon),
             status,
-            self.filter.est.sigma,
+            self.filter.reported_sigma,
             source,
             p.turn_deg % 360.0,
             p.yaw_deg(),

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from _windows import cut_at_heading
 from aeroloc.core import geo
 from aeroloc.core.canvas import photo_view
 from aeroloc.core.frames import turned
@@ -93,14 +94,13 @@ def _map_window(naip_map, heading: float, side: int):
     """A window of the NAIP map at ``heading`` (exact geometry) and its centre's lat/lon."""
     import rasterio
     from pyproj import Transformer
-    from tests.test_localize import _cut_at_heading
 
     with rasterio.open(naip_map) as ds:
         image = np.ascontiguousarray(ds.read([1, 2, 3]).transpose(1, 2, 0))
         cx, cy = 0.41 * ds.width + 0.2, 0.47 * ds.height + 0.6
         x, y = ds.transform @ (cx, cy)
         lon, lat = Transformer.from_crs(ds.crs, "EPSG:4326", always_xy=True).transform(x, y)
-    return _cut_at_heading(image, cx, cy, heading, side), lat, lon
+    return cut_at_heading(image, cx, cy, heading, side), lat, lon
 
 
 @pytest.mark.slow

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from _windows import cut_at_heading
 from aeroloc.bench.metrics import tile_contains
 from aeroloc.core import geo
 from aeroloc.core.images import read_image
@@ -320,18 +321,6 @@ def test_a_blas_loaded_after_the_first_localization_is_single_threaded_too():
     assert int(out[1]) >= 2, out  # numpy's and scipy's OpenBLAS both seen (else the test shows nothing)
 
 
-def _cut_at_heading(image: np.ndarray, cx: float, cy: float, heading_deg: float, side: int) -> np.ndarray:
-    """A ``side`` px square of ``image`` centred on (cx, cy) (pixel-edge coordinates, the georeference's frame),
-    its content turned ``heading_deg`` as the sets' crops (aeroloc.flight.composite.crop_to_map), each output
-    pixel centre sampled exactly: OpenCV's inverse map takes pixel indices, half a pixel from the edge frame."""
-    import cv2
-
-    from aeroloc.flight.composite import crop_to_map, index_frame
-
-    a = index_frame(crop_to_map(heading_deg, 1.0, (cx, cy), (side, side)))
-    return cv2.warpAffine(image, a, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("heading", [0.0, 90.0, 137.0, 200.0])
 def test_a_window_cut_from_the_map_at_any_heading_is_placed_without_bias(localizer, naip_map, heading):
@@ -346,6 +335,6 @@ def test_a_window_cut_from_the_map_at_any_heading_is_placed_without_bias(localiz
         cx, cy = 0.37 * ds.width + 0.3, 0.55 * ds.height + 0.7
         x, y = ds.transform @ (cx, cy)
         lon, lat = Transformer.from_crs(ds.crs, "EPSG:4326", always_xy=True).transform(x, y)
-    res = localizer("cut", _cut_at_heading(image, cx, cy, heading, 200))
+    res = localizer("cut", cut_at_heading(image, cx, cy, heading, 200))
     assert res.status.startswith("localized"), res.status
     assert geo.geodesic_distance(lat, lon, res.lat, res.lon) < 1.0

@@ -248,3 +248,29 @@ def test_turned_retrieval_views_are_the_quarter_turns_and_the_mirrored_diagonals
         np.testing.assert_allclose(descs[i], own[0], atol=1e-5)
     np.testing.assert_allclose(descs[2], retriever.describe(np.rot90(image, 1))[0][0], atol=1e-5)
     assert np.abs(descs[1] - black[1]).max() > 1e-3  # the diagonal differs from the black-cornered turn
+
+
+def test_the_retrieve_command_describes_a_photo_on_a_black_canvas_alone(db, dev_query, tmp_path):
+    """``aeroloc retrieve`` sees a padded photo as ``aeroloc localize`` does (aeroloc.core.canvas): the photo
+    alone, so the same ranking and scores as the photo itself (before: the canvas in the descriptor)."""
+    import csv
+
+    from PIL import Image
+
+    from aeroloc.cli import main
+
+    q, photo = dev_query
+    padded = np.zeros((photo.shape[0] + 120, photo.shape[1] + 200, 3), np.uint8)
+    padded[60:-60, 100:-100] = photo
+    Image.fromarray(photo).save(tmp_path / "photo.png")
+    Image.fromarray(padded).save(tmp_path / "padded.png")
+    with open(tmp_path / "queries.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["name", "lat", "lon"])
+        w.writerows([["photo.png", q.lat, q.lon], ["padded.png", q.lat, q.lon]])
+    out = tmp_path / "retrieved.csv"
+    assert main(["retrieve", str(db.folder), str(tmp_path / "queries.csv"), "--method", METHOD, "--out", str(out)]) == 0
+    with open(out, newline="") as f:
+        rows = {r["name"]: r for r in csv.DictReader(f)}
+    assert rows["padded.png"]["top_tiles"] == rows["photo.png"]["top_tiles"]
+    assert rows["padded.png"]["scores"] == rows["photo.png"]["scores"]

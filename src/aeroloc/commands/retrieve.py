@@ -33,6 +33,7 @@ def add_arguments(p):
 def run(args) -> int:
     from tqdm import tqdm
 
+    from aeroloc.core.canvas import photo_view
     from aeroloc.core.device import pick_device
     from aeroloc.core.errors import AerolocError
     from aeroloc.core.images import read_image
@@ -68,7 +69,9 @@ def run(args) -> int:
         batch.clear()
 
     for q in tqdm(queries, desc="retrieve", unit="query", leave=False):
-        batch.append((q, *retriever.describe(read_image(q.path))))
+        image = read_image(q.path)
+        view = photo_view(image)  # a photo on a black canvas: described alone, as aeroloc localize sees it
+        batch.append((q, *retriever.describe(image if view is None else view.image)))
         if len(batch) == SEARCH_BATCH:
             flush()
     flush()

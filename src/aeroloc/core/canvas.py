@@ -52,11 +52,11 @@ def canvas_mask(image: np.ndarray) -> np.ndarray | None:
     """The canvas: dark pixels connected to a corner, when all four corners are dark; None when they are not (the
     image does not sit on a canvas). Dark pixels inside the photo (shadow, deep water) are not canvas unless they
     touch it."""
-    rgb = image if image.ndim == 2 else image.max(axis=2)
-    h, w = rgb.shape[:2]
+    h, w = image.shape[:2]
     corners = [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1)]
-    if any(rgb[r, c] > DARK for r, c in corners):
+    if any(np.max(image[r, c]) > DARK for r, c in corners):  # the usual photo: four pixels read, nothing more
         return None
+    rgb = image if image.ndim == 2 else image.max(axis=2)
     dark = (rgb <= DARK).astype(np.uint8)
     _, labels = cv2.connectedComponents(dark, connectivity=4)
     corner_labels = {int(labels[r, c]) for r, c in corners}

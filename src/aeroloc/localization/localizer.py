@@ -44,7 +44,9 @@ class Localizer:
 
         if priors is not None:  # a camera's height and lens give a ground resolution only with the image's width
             priors = priors.with_image_width(image.shape[1], name)
+        t0 = time.perf_counter()
         view = photo_view(image) if self.options.trim_canvas else None
+        view_ms = (time.perf_counter() - t0) * 1000  # ~5 us for a photo on no canvas, tens of ms for one on a canvas
         if view is not None:  # a photo on a black canvas: the photo alone, whose centre is the same point
             image = view.image
             if priors is not None:
@@ -58,6 +60,7 @@ class Localizer:
             self._refine(image, out)
         if view is not None:
             _in_whole_image(out, view)
+        out.times_ms["descriptor"] = out.times_ms.get("descriptor", 0.0) + view_ms  # the query's preparation
         return self._assess(out)
 
     def _refine(self, image: np.ndarray, out: Localization) -> None:

@@ -1,6 +1,6 @@
-"""A photo on a black canvas (padded, letterboxed, turned with black corners) is cut to its centred window of
-imagery before localization (aeroloc.core.canvas): the window holds no canvas, keeps the photo's centre, and leaves
-every image whose corners are not all canvas as it is. End to end, a window of the real NAIP map on such a canvas
+"""A photo on a black canvas (padded, letterboxed, turned with black corners) is seen as the photo alone before
+localization (aeroloc.core.canvas): turned back upright when tilted, then cut to a centred window that holds no
+canvas and keeps the photo's centre; every image whose corners are not all canvas is left as it is. End to end, a window of the real NAIP map on such a canvas
 is placed within a map pixel, and a flight's pose read from the fix's homography at the whole image's centre
 lands on the same place."""
 

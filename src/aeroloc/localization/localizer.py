@@ -10,6 +10,7 @@ from functools import cached_property
 import numpy as np
 
 from aeroloc.core.canvas import View, photo_view
+from aeroloc.core.frames import project_points
 from aeroloc.localization.alignment import Alignment, align, reach_m
 from aeroloc.localization.options import LocalizeOptions
 from aeroloc.localization.results import AMBIGUOUS, Localization
@@ -628,9 +629,7 @@ def _in_whole_image(out: Localization, view: View) -> None:
         best.H = best.H @ view.to_view
     if best is not None and best.matches is not None:
         q, t, inl = best.matches
-        back = np.linalg.inv(view.to_view)
-        q = np.asarray(q, np.float64) @ back[:2, :2].T + back[:2, 2]
-        best.matches = (q, t, inl)
+        best.matches = (project_points(np.linalg.inv(view.to_view), q)[0], t, inl)
     if view.turn_deg:
         if out.dense is not None:
             out.dense.match.angle = out.dense.match.angle + view.turn_deg
